@@ -1,0 +1,192 @@
+"""Frozen configuration: every physical constant of the system lives here, in SI units.
+
+Frames (shared by geometry, simulation and learning):
+
+* A shape volume is ``[40, 40, 40]`` float32 TSDF over a 6 cm cube (1.5 mm voxels), values in
+  ``[-1, 1]``, negative inside, truncated at 5 voxels.
+* Every volume has one local frame, in metres: axes 0 and 1 centred on the cube (voxel centres at
+  ``(i + 0.5) * voxel - 3 cm``), axis 2 starting at the cube's base (``(i + 0.5) * voxel``).
+  ``tsdf_to_mesh`` returns vertices in this frame.
+* An **object** volume is indexed ``[ix, iy, iz]`` along world ``x, y, z``; its frame is the world
+  frame of an object resting on the floor at the grasp location (``x, y in [-3, 3] cm``,
+  ``z in [0, 6] cm``).  The gripper closes along world x.
+* A **finger** volume is indexed ``[iu, iv, iw]``: ``w`` is the mount normal (``iw = 0`` touches the
+  mount plate, ``iw`` grows towards the object), ``v`` points up (world +z), ``u = v x w``.  The left
+  finger sits at -x and closes towards +x (``w -> +x``, ``u -> +y``), the right finger sits at +x
+  (``w -> -x``, ``u -> -y``): the right finger is the left one turned 180 degrees about world z, so
+  both are proper rigid placements and a printed finger fits either jaw.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class GeometryConfig:
+    resolution: int = 40  # voxels per side (paper: 40^3)
+    cube_size: float = 0.06  # m, side of the volume (paper: 6 cm)
+    truncation_voxels: float = 5.0  # TSDF truncation, in voxels
+    feasible_base_fraction: float = 0.10  # solid share of a mount-side plane (paper: 10%)
+    feasible_base_planes: int = 4  # planes from the mount searched for that share (original code: 4)
+    cut_search_fraction: float = 1.0 / 3.0  # fingers cut from objects: search the first third (paper)
+    # Convex pieces per shape and vertices per piece; the batched simulator's fixed layout.
+    object_hulls: int = 8
+    finger_hulls: int = 16
+    hull_vertices: int = 32
+    mount_plate_thickness: float = 0.004  # m, printed plate under each finger (export only)
+
+    @property
+    def voxel_size(self) -> float:
+        return self.cube_size / self.resolution
+
+    @property
+    def truncation(self) -> float:
+        """Truncation distance in metres."""
+        return self.truncation_voxels * self.voxel_size
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    # --- physics (reasons beside each value) ---
+    timestep: float = 0.002  # s; 2 ms keeps 1-2 mm contacts stable with Newton and costs half of 1 ms
+    iterations: int = 50  # Newton iterations: grasps are contact-rich and need a converged solve
+    ls_iterations: int = 20
+    cone: str = "elliptic"  # elliptic cones give friction limits close to the Coulomb model
+    impratio: float = 10.0  # stiffer friction than normal constraints: stops slow creep of held objects
+    condim: int = 4  # torsional friction too: a pinched object does not spin freely around the grip axis
+    gravity: float = 9.81  # m/s^2
+    # --- object ---
+    object_mass: float = 0.050  # kg (paper: 50 g)
+    finger_friction: float = 0.2  # effective finger-object coefficient (paper: object 0.2)
+    object_friction: float = 0.5  # object-floor
+    # --- gripper ---
+    grip_force: float = 1.0  # N, force limit of each jaw actuator (paper: 1.0 N)
+    jaw_kp: float = 200.0  # N/m, position gain; saturates at grip_force beyond 5 mm of error
+    jaw_damping: float = 10.0  # N s/m
+    lift_kp: float = 2000.0
+    lift_damping: float = 80.0
+    open_margin: float = 0.004  # m, clearance between a finger and the object at t = 0
+    floor_clearance: float = 0.001  # m, finger cube bottom above the floor
+    # --- phases (s) ---
+    settle_time: float = 0.2
+    close_time: float = 0.4
+    lift_height: float = 0.12  # m
+    lift_time: float = 0.75
+    hold_time: float = 1.0
+    push_force: float = 1.5  # N (paper: 1.5 N)
+    push_time: float = 1.0 / 12.0  # s (original: 20 steps of 1/240 s)
+    push_hold_time: float = 1.7
+    success_min_height: float = 0.05  # m, object centre above its start for "lifted"
+    robustness_angles_deg: tuple[float, ...] = (-30.0, -20.0, -10.0, 10.0, 20.0, 30.0)
+    stability_directions: tuple[tuple[float, float, float], ...] = (
+        (0.0, 0.0, -1.0),
+        (0.0, 0.70710678, -0.70710678),
+        (0.61237244, -0.35355339, -0.70710678),
+        (-0.61237244, -0.35355339, -0.70710678),
+    )
+    max_speed: float = 50.0  # m/s; any body faster than this is an exploded state
+
+    @property
+    def n_trials(self) -> int:
+        return 1 + len(self.stability_directions) + len(self.robustness_angles_deg)
+
+    def steps(self, seconds: float) -> int:
+        return max(1, int(round(seconds / self.timestep)))
+
+
+TRIAL_NAMES: tuple[str, ...] = (
+    "grasp", "S1", "S2", "S3", "S4", "R-30", "R-20", "R-10", "R+10", "R+20", "R+30",
+)
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    latent_dim: int = 686  # paper
+    encoder_channels: tuple[int, ...] = (8, 16, 32, 64, 64, 32, 16, 8, 4)
+    decoder_fc: tuple[int, ...] = (1024, 2048, 4096)
+    generator_fc: tuple[int, ...] = (2096, 4096)
+    fitness_channels: tuple[int, ...] = (32, 64, 128, 256, 512, 1024)
+    fitness_fc: tuple[int, ...] = (512, 256, 128)
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    seed: int = 0
+    lr: float = 1e-4  # paper, all stages
+    weight_decay: float = 1e-5  # paper
+    ae_epochs: int = 100
+    ae_batch_size: int = 128
+    fn_epochs: int = 100
+    fn_batch_size: int = 64
+    gn_epochs: int = 100
+    cycles: int = 20
+    objects_per_cycle: int = 512  # paper
+    cotrain_batch_size: int = 32  # 16 new + 16 pretrain (paper)
+    fn_target_loss: float = 0.2
+    gn_target_loss: float = -0.95
+    min_epochs: int = 5
+    max_epochs: int = 50
+    max_steps_per_epoch: int = 500
+
+
+@dataclass(frozen=True)
+class Config:
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    net: NetConfig = field(default_factory=NetConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def replace(self, **sections) -> "Config":
+        return dataclasses.replace(self, **sections)
+
+
+def default() -> Config:
+    return Config()
+
+
+def tiny() -> Config:
+    """Short phases and narrow nets: for tests and quick looks, same physics."""
+    base = Config()
+    return base.replace(
+        sim=dataclasses.replace(
+            base.sim, settle_time=0.1, close_time=0.3, lift_time=0.4, lift_height=0.08,
+            hold_time=0.3, push_hold_time=0.5,
+        ),
+        net=NetConfig(
+            latent_dim=32, encoder_channels=(4, 8, 8, 8, 8, 8, 8, 4, 2), decoder_fc=(64, 128, 256),
+            generator_fc=(64, 64), fitness_channels=(4, 8, 8, 16, 16, 16), fitness_fc=(32, 16, 16),
+        ),
+        train=dataclasses.replace(
+            base.train, ae_epochs=2, fn_epochs=2, gn_epochs=2, cycles=3, objects_per_cycle=16,
+            ae_batch_size=8, fn_batch_size=8, cotrain_batch_size=8, min_epochs=1, max_epochs=3,
+            max_steps_per_epoch=4,
+        ),
+    )
+
+
+CONFIGS = {"default": default, "tiny": tiny}
+
+
+def get(name: str) -> Config:
+    try:
+        return CONFIGS[name]()
+    except KeyError:
+        raise ValueError(f"unknown config {name!r}; choose one of {sorted(CONFIGS)}") from None
+
+
+def voxel_centres(cfg: GeometryConfig | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Voxel centre coordinates (metres) along the three axes of a volume's local frame."""
+    cfg = cfg or GeometryConfig()
+    c = (np.arange(cfg.resolution) + 0.5) * cfg.voxel_size
+    return c - cfg.cube_size / 2, c - cfg.cube_size / 2, c
+
+
+def volume_bounds(cfg: GeometryConfig | None = None) -> np.ndarray:
+    """``[2, 3]`` lower and upper corner of the volume's cube in its local frame (metres)."""
+    cfg = cfg or GeometryConfig()
+    h = cfg.cube_size / 2
+    return np.array([[-h, -h, 0.0], [h, h, cfg.cube_size]])

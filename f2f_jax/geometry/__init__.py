@@ -1,0 +1,21 @@
+"""Shapes as volumes: TSDFs, fingers, convex pieces.  numpy/trimesh/scikit-image/coacd, no JAX."""
+
+from f2f_jax.geometry.fingers import (
+    export_finger_stl,
+    feasibility_report,
+    finger_extent,
+    finger_from_shape,
+    finger_pose,
+    finger_with_mount,
+    imprint_fingers,
+    is_feasible,
+    largest_component,
+    wsg50_fingers,
+)
+from f2f_jax.geometry.tsdf import check_tsdf, mesh_to_tsdf, normalize_mesh, solid, tsdf_to_mesh
+
+__all__ = [
+    "check_tsdf", "export_finger_stl", "feasibility_report", "finger_extent", "finger_from_shape",
+    "finger_pose", "finger_with_mount", "imprint_fingers", "is_feasible", "largest_component",
+    "mesh_to_tsdf", "normalize_mesh", "solid", "tsdf_to_mesh", "wsg50_fingers",
+]
