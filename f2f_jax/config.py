@@ -9,7 +9,8 @@ Frames (shared by geometry, simulation and learning):
   ``tsdf_to_mesh`` returns vertices in this frame.
 * An **object** volume is indexed ``[ix, iy, iz]`` along world ``x, y, z``; its frame is the world
   frame of an object resting on the floor at the grasp location (``x, y in [-3, 3] cm``,
-  ``z in [0, 6] cm``).  The gripper closes along world x.
+  ``z in [0, 6] cm``), lowered by one voxel (``GeometryConfig.rest_offset``) so that the object,
+  normalised with one empty voxel under it, rests on the floor.  The gripper closes along world x.
 * A **finger** volume is indexed ``[iu, iv, iw]``: ``w`` is the mount normal (``iw = 0`` touches the
   mount plate, ``iw`` grows towards the object), ``v`` points up (world +z), ``u = v x w``.  The left
   finger sits at -x and closes towards +x (``w -> +x``, ``u -> +y``), the right finger sits at +x
@@ -38,6 +39,15 @@ class GeometryConfig:
     finger_hulls: int = 16
     hull_vertices: int = 32
     mount_plate_thickness: float = 0.004  # m, printed plate under each finger (export only)
+
+    @property
+    def rest_offset(self) -> float:
+        """World z of a volume frame's origin in the gripper scene (metres).
+
+        A normalised object has one empty voxel under it, so it rests on the floor with its volume
+        frame lowered by one voxel; the fingers' frames are lowered alike so that imprints line up.
+        """
+        return -self.voxel_size
 
     @property
     def voxel_size(self) -> float:
@@ -70,7 +80,6 @@ class SimConfig:
     lift_kp: float = 2000.0
     lift_damping: float = 80.0
     open_margin: float = 0.004  # m, clearance between a finger and the object at t = 0
-    floor_clearance: float = 0.001  # m, finger cube bottom above the floor
     # --- phases (s) ---
     settle_time: float = 0.2
     close_time: float = 0.4

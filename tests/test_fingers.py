@@ -34,10 +34,10 @@ def test_sphere_imprint_fingers_are_feasible_and_cage_the_sphere(sphere_tsdf):
     assert np.mean((left < 0) != (right < 0)) < 0.01
     # The tip plane (w = 6 cm) meets the object's mid-plane: the cavity is deepest at the centre.
     depth = (left < 0).sum(axis=2)  # solid column length along w
-    assert depth[20, 20] <= 21 and depth[0, 0] == 40
+    assert depth[20, 20] <= 21 and depth[0, 20] == 40  # centre ray hits, edge ray misses
     # Fingers placed at closure hug the sphere: no finger voxel inside it, gap at most ~1 voxel.
     finger_world = _finger_points_world(left, "left", mount_x=-G.cube_size)
-    centre = np.array([0, 0, G.cube_size / 2 + 0.001])
+    centre = np.array([0, 0, G.cube_size / 2 + G.rest_offset])  # the sphere resting on the floor
     r = G.cube_size / 2 - G.voxel_size
     d = np.linalg.norm(finger_world - centre, axis=1)
     assert d.min() > r - 1.5 * G.voxel_size
@@ -124,3 +124,13 @@ def test_export_stl_is_watertight_millimetres(tmp_path, sphere_tsdf):
     with pytest.raises(VolumeError, match="not feasible"):
         export_finger_stl(block(10, 30, 10, 30, 10, 30), tmp_path / "bad.stl")
     assert not (tmp_path / "bad.stl").exists()
+
+
+def test_imprint_finger_does_not_reach_under_a_resting_box():
+    box = mesh_to_tsdf(trimesh.creation.box((0.05, 0.05, 0.05)))
+    left, right = imprint_fingers(box)
+    bottom = np.nonzero((box < 0).any(axis=(0, 1)))[0][0]
+    for finger in (left, right):
+        assert is_feasible(finger)
+        # below the box's lowest row, nothing beyond the base block (w < 3 cm)
+        assert not (finger[:, :bottom, 20:] < 0).any()

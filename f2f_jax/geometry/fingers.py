@@ -13,7 +13,7 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from f2f_jax.config import Config, GeometryConfig, SimConfig, voxel_centres
+from f2f_jax.config import Config, GeometryConfig, voxel_centres
 from f2f_jax.errors import VolumeError
 from f2f_jax.geometry.tsdf import check_tsdf, marching_cubes_mesh
 
@@ -116,6 +116,11 @@ def _imprint_left(obj: np.ndarray, g: GeometryConfig) -> np.ndarray:
     dist = x_index[None, None, :] - surface[:, :, None]  # [iy, iz, iw]
     finger = np.clip(dist / g.truncation_voxels, -1.0, 1.0)
     finger = np.where(np.isinf(surface)[:, :, None], -1.0, finger)
+    # A finger cannot reach under an object that rests on the floor: rays below the object's
+    # lowest voxel row see no object, but they pass under it, not beside it.
+    rows = np.nonzero((obj < 0).any(axis=(0, 1)))[0]
+    if len(rows):
+        finger[:, : rows[0], :] = np.maximum(finger[:, : rows[0], :], 1.0)
     finger[:, :, :half] = -1.0
     # [iy, iz, iw] -> [iu, iv, iw]: u = +y, v = z for the left finger.
     return largest_component(finger.astype(np.float32))
@@ -203,13 +208,11 @@ def finger_pose(side: str, mount_x: float, cfg=None) -> np.ndarray:
 
     left:  world = (mount_x + w,  u, z0 + v)
     right: world = (mount_x - w, -u, z0 + v)
-    z0 = cube_size / 2 + floor_clearance: the finger cube spans the object's height.
+    z0 = cube_size / 2 + rest_offset: finger and object volumes share their vertical frame, so
+    finger voxel row iv faces object voxel row iz = iv.
     """
-    if isinstance(cfg, Config):
-        g, s = cfg.geometry, cfg.sim
-    else:
-        g, s = _geom(cfg), SimConfig()
-    z0 = g.cube_size / 2 + s.floor_clearance
+    g = _geom(cfg)
+    z0 = g.cube_size / 2 + g.rest_offset
     T = np.eye(4)
     if side == "left":
         T[:3, :3] = [[0, 0, 1], [1, 0, 0], [0, 1, 0]]
