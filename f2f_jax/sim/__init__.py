@@ -1,0 +1,25 @@
+"""Grasp simulation: the WSG50-like scene, the 11 trials and the backends that run them.
+
+``evaluate(objects, lefts, rights, backend="mujoco")`` is the entry point: [N, 40, 40, 40] TSDF
+triples in, [N, 11] uint8 outcomes out (``TRIAL_NAMES`` order).
+"""
+
+from f2f_jax.config import TRIAL_NAMES
+from f2f_jax.sim.mujoco_cpu import EvaluationInfo, evaluate
+from f2f_jax.sim.protocol import GraspRunner, TrialResult, run_trials
+from f2f_jax.sim.scene import (
+    GRIPPER_XML,
+    JawOpener,
+    SceneIds,
+    SceneLayout,
+    build_model,
+    describe_layout,
+    finger_object_contacts,
+    scene_ids,
+)
+
+__all__ = [
+    "GRIPPER_XML", "EvaluationInfo", "GraspRunner", "JawOpener", "SceneIds", "SceneLayout",
+    "TRIAL_NAMES", "TrialResult", "build_model", "describe_layout", "evaluate",
+    "finger_object_contacts", "run_trials", "scene_ids",
+]

@@ -1,0 +1,203 @@
+"""Reference backend: plain MuJoCo on CPU threads, one model per candidate.
+
+Each candidate (object, left finger, right finger) becomes its own compiled model
+(``scene.build_model``) and runs the 11 trials (``protocol.run_trials``) in a worker thread;
+MuJoCo releases the GIL inside ``mj_step``, so threads scale over cores.  Results depend only on
+the inputs: each candidate is simulated alone, single-threaded, from the same initial state.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from f2f_jax.config import Config
+from f2f_jax.errors import F2FError, VolumeError
+from f2f_jax.geometry.fingers import feasibility_report
+from f2f_jax.geometry.hulls import Hulls, finger_hulls, object_hulls as make_object_hulls
+from f2f_jax.geometry.tsdf import check_tsdf
+from f2f_jax.sim.protocol import TrialResult, run_trials
+from f2f_jax.sim.scene import build_model
+
+log = logging.getLogger(__name__)
+
+# Above this many candidates a progress bar is shown when progress=None.
+_AUTO_PROGRESS = 32
+
+
+@dataclass
+class EvaluationInfo:
+    """Diagnostics of one ``evaluate`` call, per candidate where an array.
+
+    steps: [N] int64 physics steps; unstable: [N] int64 trials ended by an exploding state;
+    infeasible: [N] bool, a finger failed ``is_feasible`` (not simulated);
+    failed: [N] bool, the candidate could not be simulated (hull or model build error);
+    errors: {index: message} for failed candidates; initial_contacts: [N] int64 grasp set-ups
+    where a finger touched the object at t = 0 (should be 0); seconds: wall time in total;
+    results: [N] TrialResult or None for candidates not simulated.
+    """
+
+    steps: np.ndarray
+    unstable: np.ndarray
+    infeasible: np.ndarray
+    failed: np.ndarray
+    errors: dict
+    initial_contacts: np.ndarray
+    seconds: float
+    results: list
+
+    @property
+    def total_steps(self) -> int:
+        return int(self.steps.sum())
+
+
+def _as_volumes(volumes, name: str, r: int) -> list[np.ndarray]:
+    """A [N, R, R, R] array or a sequence of [R, R, R] arrays -> list of arrays (not copied)."""
+    if isinstance(volumes, np.ndarray):
+        if volumes.ndim != 4 or volumes.shape[1:] != (r, r, r):
+            raise VolumeError(f"{name}: expected shape [N, {r}, {r}, {r}], got {volumes.shape}")
+        return list(volumes)
+    out = []
+    for i, v in enumerate(volumes):
+        arr = np.asarray(v)
+        if arr.shape != (r, r, r):
+            raise VolumeError(f"{name}[{i}]: expected shape ({r}, {r}, {r}), got {arr.shape}")
+        out.append(arr)
+    return out
+
+
+def _digest(arr: np.ndarray) -> str:
+    return hashlib.sha1(np.ascontiguousarray(arr, np.float32).tobytes()).hexdigest()
+
+
+def _simulate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config) -> TrialResult:
+    """Hulls, model and trials of one feasible candidate; any geometry error is a failure."""
+    try:
+        model = build_model(obj_hulls, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg)
+    except (F2FError, ValueError) as exc:
+        return TrialResult.zeros(cfg.sim.n_trials, error=f"{type(exc).__name__}: {exc}")
+    return run_trials(model, cfg)
+
+
+def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | None = None,
+             threads: int | None = None, progress: bool | None = None, object_hulls=None,
+             cache_dir=None, return_info: bool = False):
+    """Simulate the 11 trials of N (object, left finger, right finger) triples.
+
+    objects, lefts, rights: [N, 40, 40, 40] float32 TSDF arrays (or length-N sequences of
+        [40, 40, 40]), negative inside, in the frames of config.py.
+    backend: "mujoco" (this module) or "mjx" (not built yet).
+    threads: worker threads (default os.cpu_count()).
+    progress: tqdm bars; None shows the trials bar when N > 32 and the object-hulls bar when
+        more than one distinct object needs hulls (coacd takes ~25 s per object, uncached).
+    object_hulls: precomputed object Hulls, one for all or a length-N sequence; default computes
+        them with ``geometry.hulls.object_hulls`` (coacd, cached on disk in ``cache_dir``), once
+        per distinct object volume.
+    return_info: also return an EvaluationInfo.
+
+    Returns outcomes [N, 11] uint8 in ``TRIAL_NAMES`` order (and the info).  A candidate with an
+    infeasible finger scores zeros without simulation; one whose hulls or model cannot be built
+    scores zeros and is counted in ``info.failed``; the rest of the batch is still evaluated.
+    Raises VolumeError (naming the index) for volumes of the wrong shape, NaN values or an empty
+    object, ValueError for inputs of different lengths.
+    """
+    if backend == "mjx":
+        raise NotImplementedError("backend='mjx' is not built yet (issue 'Batched MJX simulator'); "
+                                  "use backend='mujoco'")
+    if backend != "mujoco":
+        raise ValueError(f"unknown backend {backend!r}; choose 'mujoco' or 'mjx'")
+    cfg = cfg or Config()
+    g, n_trials = cfg.geometry, cfg.sim.n_trials
+    r = g.resolution
+    objs = _as_volumes(objects, "objects", r)
+    lefts = _as_volumes(lefts, "lefts", r)
+    rights = _as_volumes(rights, "rights", r)
+    n = len(objs)
+    if not (len(lefts) == len(rights) == n):
+        raise ValueError(f"objects, lefts and rights must have one entry per candidate; got "
+                         f"{n}, {len(lefts)} and {len(rights)}")
+    objs = [check_tsdf(o, f"objects[{i}]", g) for i, o in enumerate(objs)]
+    feasible = np.ones(n, bool)
+    for name, fingers in (("lefts", lefts), ("rights", rights)):
+        for i, f in enumerate(fingers):
+            # Shape and NaN errors raise; an empty or disconnected finger is merely infeasible.
+            try:
+                feasible[i] &= feasibility_report(f, g)["feasible"]
+            except VolumeError as exc:
+                raise VolumeError(f"{name}[{i}]: {exc}") from None
+
+    if object_hulls is not None:
+        hull_list = [object_hulls] * n if isinstance(object_hulls, Hulls) else list(object_hulls)
+        if len(hull_list) != n:
+            raise ValueError(f"object_hulls: expected one Hulls per candidate ({n}), got "
+                             f"{len(hull_list)}")
+    start = time.perf_counter()
+    threads = max(1, int(threads or os.cpu_count() or 1))
+    todo = np.nonzero(feasible)[0]
+    results: list[TrialResult | None] = [None] * n
+    errors: dict[int, str] = {}
+
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        if object_hulls is None:
+            # Decompose each distinct object once (coacd is slow; the disk cache helps reruns).
+            keys = {i: _digest(objs[i]) for i in todo}
+            first = {}
+            for i in todo:
+                first.setdefault(keys[i], i)
+
+            def decompose(i):
+                try:
+                    return make_object_hulls(objs[i], cfg, cache_dir=cache_dir)
+                except (F2FError, ValueError) as exc:
+                    return f"{type(exc).__name__}: {exc}"
+
+            # In this thread, one after another: coacd is not known to be thread-safe.
+            items = first.items()
+            if progress or (progress is None and len(first) > 1):
+                from tqdm.auto import tqdm
+
+                items = tqdm(items, total=len(first), desc="object hulls", unit="obj")
+            made = {key: decompose(i) for key, i in items}
+            hull_list = [made[keys[i]] if i in keys else None for i in range(n)]
+
+        def work(i):
+            hulls = hull_list[i]
+            if isinstance(hulls, str):
+                return TrialResult.zeros(n_trials, error=f"object hulls: {hulls}")
+            return _simulate(hulls, lefts[i], rights[i], cfg)
+
+        show = progress if progress is not None else len(todo) > _AUTO_PROGRESS
+        done = pool.map(work, todo)
+        if show:
+            from tqdm.auto import tqdm
+
+            done = tqdm(done, total=len(todo), desc="grasp trials", unit="cand")
+        for i, res in zip(todo, done):
+            results[i] = res
+            if res.error is not None:
+                errors[int(i)] = res.error
+                log.warning("candidate %d not simulated: %s", i, res.error)
+
+    outcomes = np.zeros((n, n_trials), np.uint8)
+    for i, res in enumerate(results):
+        if res is not None:
+            outcomes[i] = res.outcome
+    if not return_info:
+        return outcomes
+
+    def field(name):
+        return np.array([getattr(res, name) if res is not None else 0 for res in results],
+                        np.int64)
+
+    info = EvaluationInfo(
+        steps=field("steps"), unstable=field("unstable"), infeasible=~feasible,
+        failed=np.array([i in errors for i in range(n)], bool), errors=errors,
+        initial_contacts=field("initial_contacts"), seconds=time.perf_counter() - start,
+        results=results)
+    return outcomes, info

@@ -1,0 +1,268 @@
+"""The 11 grasp trials of one candidate as phases over a MuJoCo (model, data) pair.
+
+Trial order is ``config.TRIAL_NAMES``: the grasp (settle, close, lift, hold, check); four pushes
+S1..S4 from the restored post-grasp state; six grasps of the object turned by
+``SimConfig.robustness_angles_deg``.  Every phase length and threshold comes from ``SimConfig``.
+
+Rules (DESIGN.md section 2):
+
+* success = the object's centre of mass is at least ``success_min_height`` above where it settled
+  AND a finger touches it;
+* a failed grasp makes every other trial 0 without simulating it;
+* a NaN or exploding state (MuJoCo warnings, non-finite state, a speed above ``max_speed``) ends
+  that trial as a failure and is counted in ``TrialResult.unstable``, never raised;
+* once the object is below the success height after the lift is done, nothing can raise it again
+  (the gripper stands still), so that trial stops early: a failure costs few steps.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import mujoco
+import numpy as np
+
+from f2f_jax.config import TRIAL_NAMES, Config
+from f2f_jax.sim.scene import JawOpener, SceneIds, finger_object_contacts, object_quat, scene_ids
+
+# Steps between health checks: 50 ms of simulated time, short enough that an exploding state is
+# caught before it does anything but fail its own trial, long enough that Python's overhead
+# stays a few percent of the stepping.
+CHECK_EVERY = 25
+# The lift command changes every LIFT_CHUNK steps (10 ms at 2 ms steps) along its profile.
+LIFT_CHUNK = 5
+_STATE = mujoco.mjtState.mjSTATE_INTEGRATION
+# A body's angular speed counts as the speed of a point this far (m) from its centre: the
+# object cube's half diagonal.
+_SPIN_RADIUS = 0.052
+
+
+@dataclass
+class TrialResult:
+    """What the 11 trials of one candidate gave.
+
+    outcome: [11] uint8, 1 = success, in ``TRIAL_NAMES`` order.
+    steps: physics steps taken in all trials together.
+    unstable: trials ended by a NaN / exploding state (counted as failures).
+    trial_steps: [11] int64, steps per trial (0 for trials not run).
+    heights: [11] float64, object centre above its settled height (m) at each trial's end; NaN
+        where the trial was not run or went unstable.
+    initial_contacts: grasp set-ups (of 7) in which a finger touched the object at t = 0 or when
+        the jaws, moved in after settling, start to close (should be 0).
+    seconds: wall time of the trials.
+    error: why the candidate was not simulated (model build failure), else None.
+    """
+
+    outcome: np.ndarray
+    steps: int = 0
+    unstable: int = 0
+    trial_steps: np.ndarray = field(default_factory=lambda: np.zeros(len(TRIAL_NAMES), np.int64))
+    heights: np.ndarray = field(default_factory=lambda: np.full(len(TRIAL_NAMES), np.nan))
+    initial_contacts: int = 0
+    seconds: float = 0.0
+    error: str | None = None
+
+    @classmethod
+    def zeros(cls, n_trials: int = len(TRIAL_NAMES), error: str | None = None) -> "TrialResult":
+        return cls(outcome=np.zeros(n_trials, np.uint8), trial_steps=np.zeros(n_trials, np.int64),
+                   heights=np.full(n_trials, np.nan), error=error)
+
+
+def lift_targets(cfg: Config | None = None) -> np.ndarray:
+    """Lift position targets at the lift phase's step boundaries: [n_lift + 1] float64 (m).
+
+    A minimum-jerk profile (10 t^3 - 15 t^4 + 6 t^5) from 0 to lift_height over lift_time.  A
+    constant-speed ramp starts with a velocity step that the stiff lift servo turns into a jolt
+    of ~6 m/s^2 (v * sqrt(kp / m)); the 50 g object then needs 0.3 N more friction than its
+    weight, so grasps that hold statically would slip.  This profile peaks at
+    5.8 lift_height / lift_time^2 (1.2 m/s^2 with the default phases: 0.06 N).
+    """
+    s = (cfg or Config()).sim
+    t = np.linspace(0.0, 1.0, s.steps(s.lift_time) + 1)
+    return s.lift_height * t ** 3 * (10.0 - 15.0 * t + 6.0 * t ** 2)
+
+
+class Unstable(Exception):
+    """Raised inside a trial when the state is NaN or exploding; the trial scores 0."""
+
+
+class GraspRunner:
+    """Steps one model through the trial phases, counting steps and watching for instability.
+
+    model: a model from ``scene.build_model``; data: its MjData (created if None).
+    """
+
+    def __init__(self, model: mujoco.MjModel, cfg: Config | None = None,
+                 data: mujoco.MjData | None = None):
+        self.model = model
+        self.cfg = cfg or Config()
+        self.data = data if data is not None else mujoco.MjData(model)
+        self.ids: SceneIds = scene_ids(model)
+        self.opener = JawOpener(model, self.ids, self.cfg)
+        self.steps = 0
+        self.z_start = np.nan  # object centre height after settling in the last grasp (m)
+        self._warnings = 0
+        self._speed_dofs = np.concatenate([self.ids.jaw_dof, [self.model.jnt_dofadr[
+            self.model.joint("lift").id]]]).astype(np.int64)
+
+    # --- low level --------------------------------------------------------------------------
+    def _warning_count(self) -> int:
+        return int(self.data.warning.number.sum())
+
+    def healthy(self) -> bool:
+        """False if MuJoCo warned since the trial began, the state is not finite or anything
+        moves faster than ``max_speed``."""
+        d, ids = self.data, self.ids
+        if self._warning_count() != self._warnings:
+            return False
+        if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
+            return False
+        v = d.qvel[ids.object_dof: ids.object_dof + 6]
+        speed = max(float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:])) * _SPIN_RADIUS,
+                    float(np.max(np.abs(d.qvel[self._speed_dofs]))))
+        return speed <= self.cfg.sim.max_speed
+
+    def advance(self, n: int, *, stop_below: float | None = None,
+                chunk: int = CHECK_EVERY) -> bool:
+        """Step ``n`` times in chunks of ``chunk`` steps, checking health after each chunk.
+
+        stop_below: stop early (return False) once the object's centre is below this height.
+        Returns True if all n steps ran.  Raises Unstable.
+        """
+        done = 0
+        while done < n:
+            k = min(chunk, n - done)
+            mujoco.mj_step(self.model, self.data, nstep=k)
+            done += k
+            self.steps += k
+            if not self.healthy():
+                raise Unstable(f"unstable state at t = {self.data.time:.3f} s")
+            if stop_below is not None and self.object_height() < stop_below:
+                return False
+        return True
+
+    def object_height(self) -> float:
+        return float(self.data.xipos[self.ids.object_body, 2])
+
+    def held(self, z_start: float) -> tuple[bool, float]:
+        """(success, height above start): lifted by success_min_height and touching a finger."""
+        mujoco.mj_forward(self.model, self.data)  # contacts of the current state
+        rise = self.object_height() - z_start
+        touching = finger_object_contacts(self.model, self.data, self.ids) > 0
+        return bool(rise >= self.cfg.sim.success_min_height and touching), rise
+
+    # --- phases -----------------------------------------------------------------------------
+    def place(self, yaw: float) -> int:
+        """Reset to t = 0: the object turned by ``yaw`` (rad) resting where the model put it, the
+        jaws fully open, the lift at rest.  Returns the finger-object contacts after mj_forward
+        (0 unless a finger cannot clear the object even fully open)."""
+        m, d, ids = self.model, self.data, self.ids
+        mujoco.mj_resetData(m, d)
+        d.qpos[ids.object_qpos + 3: ids.object_qpos + 7] = object_quat(yaw)
+        d.qpos[ids.jaw_qpos] = ids.jaw_range[:, 1]
+        d.ctrl[ids.grip_act] = ids.jaw_range[:, 1]
+        d.ctrl[ids.lift_act] = 0.0
+        d.act[ids.lift_act_adr] = 0.0
+        mujoco.mj_forward(m, d)
+        self._warnings = self._warning_count()
+        return finger_object_contacts(m, d, ids)
+
+    def approach(self) -> tuple[np.ndarray, int]:
+        """Move the open jaws in to ``open_margin`` from the object where it now lies.
+
+        Done after settling: a coarse hull of a round object tips onto a face and rolls a few
+        millimetres when set down, so openings computed before settling would let it roll into
+        a finger.  The jaws are set in place at rest (they touch nothing but the object).
+        Returns (openings [2] m, finger-object contacts after mj_forward: should be 0).
+        """
+        m, d, ids = self.model, self.data, self.ids
+        openings = self.opener(d, self.cfg.sim.open_margin)
+        d.qvel[ids.jaw_dof] = 0.0
+        mujoco.mj_forward(m, d)
+        return openings, finger_object_contacts(m, d, ids)
+
+    def grasp(self, yaw: float) -> tuple[bool, float, int]:
+        """One grasp attempt: place, settle, approach, close, lift, hold, check.
+
+        Returns (success, object height above its settled height at the end (m), finger-object
+        contacts at t = 0 and when the jaws start closing).  Raises Unstable.
+        """
+        s, d, ids = self.cfg.sim, self.data, self.ids
+        touching = self.place(yaw)
+        self.advance(s.steps(s.settle_time))
+        z_start = self.object_height()
+        self.z_start = z_start
+        _, touching_closing = self.approach()
+        touching += touching_closing
+        d.ctrl[ids.grip_act] = ids.jaw_range[:, 0]  # beyond any contact: both servos saturate
+        self.advance(s.steps(s.close_time))
+        # The lift actuator integrates its command (a speed) into its position target: a
+        # constant command per chunk moves the target exactly along the profile's chord.
+        targets = lift_targets(self.cfg)
+        for i in range(0, len(targets) - 1, LIFT_CHUNK):
+            j = min(i + LIFT_CHUNK, len(targets) - 1)
+            d.ctrl[ids.lift_act] = (targets[j] - targets[i]) / ((j - i) * s.timestep)
+            self.advance(j - i, chunk=LIFT_CHUNK)
+        d.ctrl[ids.lift_act] = 0.0
+        self.advance(s.steps(s.hold_time), stop_below=z_start + s.success_min_height)
+        ok, rise = self.held(z_start)
+        return ok, rise, touching
+
+    def push(self, state: np.ndarray, z_start: float, direction) -> tuple[bool, float]:
+        """From the saved post-grasp state: push_force along ``direction`` at the object's centre
+        of mass for push_time, then hold push_hold_time; success if still held."""
+        s, d, ids = self.cfg.sim, self.data, self.ids
+        mujoco.mj_setState(self.model, d, state, _STATE)
+        self._warnings = self._warning_count()
+        d.xfrc_applied[:] = 0.0
+        d.xfrc_applied[ids.object_body, :3] = s.push_force * np.asarray(direction, np.float64)
+        below = z_start + s.success_min_height
+        running = self.advance(s.steps(s.push_time), stop_below=below)
+        d.xfrc_applied[ids.object_body, :3] = 0.0
+        if running:
+            self.advance(s.steps(s.push_hold_time), stop_below=below)
+        return self.held(z_start)
+
+
+def run_trials(model: mujoco.MjModel, cfg: Config | None = None, *,
+               data: mujoco.MjData | None = None) -> TrialResult:
+    """All 11 trials of one candidate on one model (from ``scene.build_model`` at yaw 0).
+
+    Returns a TrialResult; never raises for unstable physics (counted in ``unstable``).
+    """
+    cfg = cfg or Config()
+    s = cfg.sim
+    start = time.perf_counter()
+    runner = GraspRunner(model, cfg, data)
+    result = TrialResult.zeros(s.n_trials)
+    n_push = len(s.stability_directions)
+
+    def trial(index, fn):
+        before = runner.steps
+        try:
+            ok, rise = fn()
+        except Unstable:
+            result.unstable += 1
+            ok, rise = False, np.nan
+        result.outcome[index] = ok
+        result.heights[index] = rise
+        result.trial_steps[index] = runner.steps - before
+        return ok
+
+    def grasp(yaw):
+        ok, rise, touching = runner.grasp(yaw)
+        result.initial_contacts += touching > 0
+        return ok, rise
+
+    if trial(0, lambda: grasp(0.0)):
+        z_start = runner.z_start
+        state = np.empty(mujoco.mj_stateSize(model, _STATE))
+        mujoco.mj_getState(model, runner.data, state, _STATE)
+        for i, direction in enumerate(s.stability_directions):
+            trial(1 + i, lambda: runner.push(state, z_start, direction))
+        for i, angle in enumerate(s.robustness_angles_deg):
+            trial(1 + n_push + i, lambda: grasp(np.deg2rad(angle)))
+    result.steps = runner.steps
+    result.seconds = time.perf_counter() - start
+    return result

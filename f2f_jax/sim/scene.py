@@ -1,0 +1,427 @@
+"""The grasp scene as a MuJoCo model: WSG50-like gripper, two fingers and an object on a floor.
+
+``build_model`` loads ``assets/wsg50/wsg50.xml`` into an ``mujoco.MjSpec``, sets every physical
+constant from ``SimConfig`` and adds one convex mesh geom per hull piece: the object's pieces on a
+free body, each finger's pieces on its jaw.  Every body gets the same number of geoms whatever the
+number of real pieces (unused slots hold a tiny tetrahedron that never collides), so all models
+built from one ``describe_layout`` share one structure: what a batched simulator needs.
+
+Frames are those of ``f2f_jax.config``: the object's hull vertices are in its volume's local frame,
+which is the world frame of the object resting on the floor; finger vertices are in the finger
+frame ``(u, v, w)`` and are placed on the jaw by the rotation of ``geometry.finger_pose``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+
+from f2f_jax.config import Config
+from f2f_jax.errors import DecompositionError
+from f2f_jax.geometry.fingers import finger_pose
+from f2f_jax.geometry.hulls import Hulls
+
+ASSET_DIR = Path(__file__).resolve().parents[1] / "assets" / "wsg50"
+GRIPPER_XML = ASSET_DIR / "wsg50.xml"
+
+# Collision bits (see the XML's header): the floor and the fingers each carry one bit, the object
+# accepts both; nothing else collides.  Finger-finger and finger-floor pairs never reach the
+# narrow phase, which is most of the saving for mesh-mesh collisions.
+FLOOR_BIT = 1
+FINGER_BIT = 2
+OBJECT_AFFINITY = FLOOR_BIT | FINGER_BIT
+
+# A placeholder piece: a 1 mm tetrahedron.  It fills an unused slot so the layout stays fixed.
+_PAD_EDGE = 0.001
+_PAD_TETRA = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float64) * _PAD_EDGE
+# Finger placeholders sit 5 cm behind the mount plate (w = -0.05), where no object can be.
+_FINGER_PAD_W = -0.05
+
+SIDES = ("left", "right")
+
+
+@dataclass(frozen=True)
+class SceneLayout:
+    """The fixed structure shared by every model built for one configuration.
+
+    object_pieces, finger_pieces: geom slots on the object body and on each jaw.
+    hull_vertices: vertices per piece (the batched backend pads mesh data to this).
+    object_geoms, left_geoms, right_geoms: geom names per slot, in slot order.
+    """
+
+    object_pieces: int
+    finger_pieces: int
+    hull_vertices: int
+    object_geoms: tuple[str, ...]
+    left_geoms: tuple[str, ...]
+    right_geoms: tuple[str, ...]
+    object_body: str = "object"
+    jaw_bodies: tuple[str, str] = ("left_jaw", "right_jaw")
+    jaw_joints: tuple[str, str] = ("left_jaw", "right_jaw")
+    lift_joint: str = "lift"
+    actuators: tuple[str, str, str] = ("left_grip", "right_grip", "lift")
+
+
+def describe_layout(cfg: Config | None = None, *, object_pieces: int | None = None,
+                    finger_pieces: int | None = None) -> SceneLayout:
+    """The layout (pieces per body, vertices per piece, geom names) of models built with ``cfg``.
+
+    Defaults come from ``GeometryConfig``: object_hulls (8), finger_hulls (16), hull_vertices (32).
+    """
+    g = (cfg or Config()).geometry
+    ko = object_pieces or g.object_hulls
+    kf = finger_pieces or g.finger_hulls
+    return SceneLayout(
+        object_pieces=ko, finger_pieces=kf, hull_vertices=g.hull_vertices,
+        object_geoms=tuple(f"object_{k}" for k in range(ko)),
+        left_geoms=tuple(f"left_{k}" for k in range(kf)),
+        right_geoms=tuple(f"right_{k}" for k in range(kf)),
+    )
+
+
+@dataclass(frozen=True)
+class SceneIds:
+    """Indices into one compiled model that the trials need.
+
+    object_body: body id; object_qpos: address of the free joint's 7 qpos (xyz, quat wxyz);
+    object_dof: address of its 6 dofs; jaw_qpos, jaw_dof: [2] (left, right); lift_qpos;
+    grip_act: [2] actuator ids; lift_act: actuator id; lift_act_adr: its activation address;
+    object_geoms: [n] geom ids of real object pieces; finger_geoms: [2] arrays of the colliding
+    geom ids on each jaw; floor_geom.
+    """
+
+    object_body: int
+    object_qpos: int
+    object_dof: int
+    jaw_qpos: np.ndarray
+    jaw_dof: np.ndarray
+    jaw_range: np.ndarray  # [2, 2] joint ranges (m)
+    lift_qpos: int
+    grip_act: np.ndarray
+    lift_act: int
+    lift_act_adr: int
+    object_geoms: np.ndarray
+    finger_geoms: tuple[np.ndarray, np.ndarray]
+    floor_geom: int
+
+    @property
+    def all_finger_geoms(self) -> np.ndarray:
+        return np.concatenate(self.finger_geoms)
+
+
+def scene_ids(model: mujoco.MjModel) -> SceneIds:
+    """Look up the bodies, joints, actuators and colliding geoms of a model from ``build_model``."""
+    def jid(name):
+        return model.joint(name).id
+
+    obj = model.body("object").id
+    obj_joint = int(model.body_jntadr[obj])
+    jaws = [jid("left_jaw"), jid("right_jaw")]
+    geom_body = model.geom_bodyid
+    colliding = (model.geom_contype != 0) | (model.geom_conaffinity != 0)
+    finger_geoms = tuple(
+        np.nonzero((geom_body == model.body(f"{s}_jaw").id) & colliding)[0].astype(np.int32)
+        for s in SIDES)
+    lift_act = model.actuator("lift").id
+    return SceneIds(
+        object_body=obj,
+        object_qpos=int(model.jnt_qposadr[obj_joint]),
+        object_dof=int(model.jnt_dofadr[obj_joint]),
+        jaw_qpos=np.array([model.jnt_qposadr[j] for j in jaws]),
+        jaw_dof=np.array([model.jnt_dofadr[j] for j in jaws]),
+        jaw_range=np.array([model.jnt_range[j] for j in jaws]),
+        lift_qpos=int(model.jnt_qposadr[jid("lift")]),
+        grip_act=np.array([model.actuator("left_grip").id, model.actuator("right_grip").id]),
+        lift_act=lift_act,
+        lift_act_adr=int(model.actuator_actadr[lift_act]),
+        object_geoms=np.nonzero((geom_body == obj) & colliding)[0].astype(np.int32),
+        finger_geoms=finger_geoms,
+        floor_geom=model.geom("floor").id,
+    )
+
+
+def _slot_pieces(hulls: Hulls, what: str) -> list[np.ndarray | None]:
+    """Per slot of the layout: the piece's [n, 3] float64 vertices, or None for an unused slot.
+    Slot k of the Hulls becomes geom ``<body>_k`` whatever the other slots hold."""
+    if not isinstance(hulls, Hulls):
+        raise TypeError(f"{what}: expected geometry.hulls.Hulls, got {type(hulls).__name__}")
+    slots = [np.asarray(hulls.vertices[k, :n], np.float64) if n > 0 else None
+             for k, n in enumerate(hulls.counts)]
+    if all(p is None for p in slots):
+        raise DecompositionError(f"{what}: no convex piece (all {hulls.max_pieces} slots empty)")
+    for k, p in enumerate(slots):
+        if p is not None and not np.all(np.isfinite(p)):
+            raise DecompositionError(f"{what}: piece {k} has NaN/inf vertices")
+    return slots
+
+
+def _hull_volume(points: np.ndarray, what: str) -> float:
+    try:
+        return float(ConvexHull(points).volume)
+    except (QhullError, ValueError) as exc:
+        raise DecompositionError(f"{what}: a piece spans no volume ({len(points)} points): "
+                                 f"{str(exc).strip().splitlines()[0]}") from None
+
+
+def _yaw_quat(yaw: float) -> np.ndarray:
+    return np.array([np.cos(yaw / 2), 0.0, 0.0, np.sin(yaw / 2)])
+
+
+def _add_piece(spec: mujoco.MjSpec, body, name: str, vertices: np.ndarray, **geom):
+    spec.add_mesh(name=name, uservert=np.asarray(vertices, np.float64).ravel().tolist())
+    body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_MESH, meshname=name, **geom)
+
+
+def _apply_sim_config(spec: mujoco.MjSpec, cfg: Config) -> None:
+    s = cfg.sim
+    opt = spec.option
+    opt.timestep = s.timestep  # 2 ms: stable 1-2 mm contacts with Newton, half the cost of 1 ms
+    opt.solver = mujoco.mjtSolver.mjSOL_NEWTON  # few, stiff contacts: Newton converges in a few
+    opt.iterations = s.iterations  # grasps are contact-rich and need a converged solve
+    opt.ls_iterations = s.ls_iterations
+    cones = {"elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC,
+             "pyramidal": mujoco.mjtCone.mjCONE_PYRAMIDAL}
+    opt.cone = cones[s.cone]  # elliptic: friction limits close to Coulomb's circle
+    opt.impratio = s.impratio  # stiffer friction than normal: a held object does not creep
+    opt.gravity = [0.0, 0.0, -s.gravity]
+    for side in SIDES:
+        # damping is [linear, higher-order terms] in mujoco 3.17: keep the linear law only;
+        # the jaws close at grip_force / jaw_damping = 0.1 m/s
+        spec.joint(f"{side}_jaw").damping = [s.jaw_damping, 0.0, 0.0]
+        act = spec.actuator(f"{side}_grip")
+        act.gainprm[0] = s.jaw_kp
+        act.biasprm[1] = -s.jaw_kp
+        act.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        act.forcerange = [-s.grip_force, s.grip_force]  # the paper's 1 N grip
+    spec.joint("lift").damping = [s.lift_damping, 0.0, 0.0]  # near-critical: zeta ~0.8
+    lift = spec.actuator("lift")
+    lift.gainprm[0] = s.lift_kp  # stiff: the object's weight sags the lift by 0.25 mm only
+    lift.biasprm[1] = -s.lift_kp
+
+
+def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hulls | None,
+                cfg: Config | None = None, *, object_yaw: float = 0.0,
+                object_mass: float | None = None, friction: float | None = None,
+                object_xy=(0.0, 0.0), flat_tips: bool = False,
+                pad_collides: bool = False) -> mujoco.MjModel:
+    """Compile the grasp scene for one (object, left finger, right finger) triple.
+
+    object_hulls: Hulls [K_o, V, 3], metres, the object volume's local frame (= world frame of the
+        object resting on the floor at the grasp location).
+    left_hulls, right_hulls: Hulls [K_f, V, 3], metres, finger frames (u, v, w); None leaves that
+        jaw with placeholders only (e.g. with ``flat_tips``).
+    object_yaw: rad, turns the object about the vertical axis through the cube's centre.
+    object_mass: kg (default ``SimConfig.object_mass``); inertia from the pieces at uniform
+        density, centre of mass at their centroid.
+    friction: finger-object coefficient (default ``SimConfig.finger_friction``).  Finger geoms
+        have ``priority=1``, so a contact takes the finger's friction, not MuJoCo's max rule.
+    object_xy: (x, y) m, shifts the object on the floor.
+    flat_tips: also enable the XML's primitive flat fingertips (a reference for wsg50_fingers).
+    pad_collides: give placeholder pieces the collision bits of real ones (a batched backend's
+        template, where a slot may be real for another candidate); they lie where nothing
+        reaches: object placeholders at the centre of a real piece, finger ones behind the mount.
+
+    The object's lowest point touches the floor (z = 0); the jaws start at their upper joint
+    limit: ``JawOpener`` moves them in so nothing touches.  Raises DecompositionError
+    for hulls without a real piece, NaN vertices or a flat piece, ValueError if MuJoCo refuses.
+    """
+    cfg = cfg or Config()
+    s = cfg.sim
+    mu = s.finger_friction if friction is None else float(friction)
+    mass = s.object_mass if object_mass is None else float(object_mass)
+    spec = mujoco.MjSpec.from_file(str(GRIPPER_XML))
+    _apply_sim_config(spec, cfg)
+    spec.modelname = "f2f_grasp"
+    spec.geom("floor").friction = [s.object_friction, 0.005, 0.0001]
+    spec.geom("floor").condim = s.condim
+
+    # --- object: a free body whose frame is the object volume's frame -------------------------
+    slots = _slot_pieces(object_hulls, "object hulls")
+    pieces = [p for p in slots if p is not None]
+    volumes = [_hull_volume(p, f"object hulls piece {k}") for k, p in enumerate(slots)
+               if p is not None]
+    density = mass / sum(volumes)  # overlapping pieces count twice; coacd's overlap is small
+    z_min = min(float(p[:, 2].min()) for p in pieces)
+    body = spec.worldbody.add_body(name="object", pos=[object_xy[0], object_xy[1], -z_min],
+                                   quat=_yaw_quat(object_yaw))
+    body.add_freejoint(name="object")
+    pad = _PAD_TETRA + pieces[int(np.argmax(volumes))].mean(0)  # inside the largest piece
+    for k, piece in enumerate(slots):
+        real = piece is not None
+        bits = OBJECT_AFFINITY if (real or pad_collides) else 0
+        _add_piece(spec, body, f"object_{k}", piece if real else pad, contype=0,
+                   conaffinity=bits, density=density if real else 0.0, condim=s.condim,
+                   friction=[s.object_friction, 0.005, 0.0001], group=2,
+                   rgba=[0.85, 0.45, 0.2, 1.0] if real else [0, 0, 0, 0])
+
+    # --- fingers: pieces on the jaws, rotated from (u, v, w) into the jaw frame --------------
+    finger_geom = dict(condim=s.condim, priority=1, friction=[mu, 0.005, 0.0001], group=2)
+    for side, hulls in zip(SIDES, (left_hulls, right_hulls)):
+        pose = finger_pose(side, 0.0, cfg)
+        rot = pose[:3, :3]
+        jaw = spec.body(f"{side}_jaw")
+        jaw.pos = pose[:3, 3]  # the mount plane's centre at the finger cube's mid-height
+        slots = ([None] * cfg.geometry.finger_hulls if hulls is None
+                 else _slot_pieces(hulls, f"{side} finger hulls"))
+        pad = _PAD_TETRA + np.array([0.0, 0.0, _FINGER_PAD_W])
+        for k, piece in enumerate(slots):
+            real = piece is not None
+            if real:
+                _hull_volume(piece, f"{side} finger hulls piece {k}")
+            bits = FINGER_BIT if (real or pad_collides) else 0
+            _add_piece(spec, jaw, f"{side}_{k}", (piece if real else pad) @ rot.T, contype=bits,
+                       conaffinity=0, rgba=[0.25, 0.45, 0.8, 1.0] if real else [0, 0, 0, 0],
+                       **finger_geom)
+        if flat_tips:
+            tip = spec.geom(f"{side}_tip")
+            tip.contype = FINGER_BIT
+            tip.friction = [mu, 0.005, 0.0001]
+            tip.condim = s.condim
+            tip.group = 2
+
+    try:
+        return spec.compile()
+    except ValueError as exc:
+        raise ValueError(f"MuJoCo could not compile the grasp scene: {exc}") from None
+
+
+def object_quat(yaw: float) -> np.ndarray:
+    """[4] (w, x, y, z) orientation of the object turned by ``yaw`` rad about world z."""
+    return _yaw_quat(yaw)
+
+
+def finger_object_distance(model: mujoco.MjModel, data: mujoco.MjData, ids: SceneIds,
+                           side: int, distmax: float = 0.2) -> float:
+    """Smallest signed distance (m) between one finger's pieces and the object's, at the current
+    kinematics (``mj_kinematics`` must have run).  Negative: they intersect."""
+    best = distmax
+    for fg in ids.finger_geoms[side]:
+        for og in ids.object_geoms:
+            best = min(best, mujoco.mj_geomDistance(model, data, int(fg), int(og), distmax, None))
+    return best
+
+
+def _geom_local_vertices(model: mujoco.MjModel, geom: int) -> np.ndarray:
+    """[n, 3] vertices of a convex geom in its own frame (meshes and boxes)."""
+    gtype = model.geom_type[geom]
+    if gtype == mujoco.mjtGeom.mjGEOM_MESH:
+        mesh = model.geom_dataid[geom]
+        adr, num = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+        return np.asarray(model.mesh_vert[adr: adr + num], np.float64)
+    if gtype == mujoco.mjtGeom.mjGEOM_BOX:
+        corners = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1], indexing="ij")).reshape(3, -1).T
+        return corners * model.geom_size[geom]
+    raise ValueError(f"geom {geom}: only mesh and box geoms can be fingers or objects here")
+
+
+class JawOpener:
+    """Jaw openings that leave each finger ``margin`` from the object along the closing axis.
+
+    For a grid of lines parallel to x over the finger's (y, z) footprint it intersects every
+    convex piece (as half-spaces), giving per line the finger's reach and the object's near side;
+    the opening is the largest reach-minus-near-side over all lines plus the margin.  Unlike a
+    Euclidean distance this is the gap along the closing motion, so parts that pass beside the
+    object (an imprint finger's rim) do not hold the jaws open.  The finger's pieces are
+    intersected once; only the object's move with its pose.
+    """
+
+    def __init__(self, model: mujoco.MjModel, ids: SceneIds, cfg: Config, *,
+                 spacing: float = 0.001):
+        self.model, self.ids = model, ids
+        g = cfg.geometry
+        z0 = finger_pose("left", 0.0, cfg)[2, 3]
+        h = g.cube_size / 2
+        ys = np.arange(-h, h + spacing / 2, spacing)
+        zs = np.arange(z0 - h, z0 + h + spacing / 2, spacing)
+        yy, zz = np.meshgrid(ys, zs, indexing="ij")
+        self.lines = np.stack([yy.ravel(), zz.ravel()], 1)  # [L, 2] (y, z) in world
+        self._local = {int(gid): self._local_planes(gid)
+                       for gid in np.concatenate([ids.all_finger_geoms, ids.object_geoms])}
+        self._finger_reach: list[tuple[np.ndarray, np.ndarray]] | None = None
+
+    def _local_planes(self, geom: int) -> np.ndarray:
+        """[F, 4] facet planes (n, d) with n . p + d <= 0 inside, in the geom's frame."""
+        verts = _geom_local_vertices(self.model, geom)
+        try:
+            return ConvexHull(verts).equations
+        except (QhullError, ValueError):
+            raise DecompositionError(f"geom {geom}: its vertices span no volume") from None
+
+    def _intervals(self, data: mujoco.MjData, geoms) -> tuple[np.ndarray, np.ndarray]:
+        """Union bounds along x of the pieces on every line: (lo [L], hi [L]); +inf / -inf where
+        a line misses all of them."""
+        lo = np.full(len(self.lines), np.inf)
+        hi = np.full(len(self.lines), -np.inf)
+        y, z = self.lines[:, 0], self.lines[:, 1]
+        for gid in geoms:
+            planes = self._local[int(gid)]
+            rot = data.geom_xmat[gid].reshape(3, 3)
+            n = planes[:, :3] @ rot.T  # world normals
+            d = planes[:, 3] - n @ data.geom_xpos[gid]
+            c = -(d[:, None] + n[:, 1:2] * y + n[:, 2:3] * z)  # n_x x <= c on each line
+            nx = n[:, 0:1]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                bound = c / nx
+            upper = np.where(nx > 1e-12, bound, np.inf).min(0)
+            lower = np.where(nx < -1e-12, bound, -np.inf).max(0)
+            parallel_ok = np.all((np.abs(nx) > 1e-12) | (c >= 0), axis=0)
+            hit = parallel_ok & (lower <= upper)
+            lo = np.where(hit, np.minimum(lo, lower), lo)
+            hi = np.where(hit, np.maximum(hi, upper), hi)
+        return lo, hi
+
+    def __call__(self, data: mujoco.MjData, margin: float) -> np.ndarray:
+        """Openings [2] (m) for the object pose in ``data.qpos``; writes them into the jaws'
+        qpos and grip controls and leaves ``data`` at those kinematics.  Clipped to the joint
+        range; a finger that cannot clear the object even fully open stays fully open."""
+        model, ids = self.model, self.ids
+        if self._finger_reach is None:
+            data.qpos[ids.jaw_qpos] = 0.0  # reach measured from the gripper's centre plane
+            mujoco.mj_kinematics(model, data)
+            self._finger_reach = [self._intervals(data, ids.finger_geoms[side]) for side in (0, 1)]
+        else:
+            mujoco.mj_kinematics(model, data)
+        obj_lo, obj_hi = self._intervals(data, ids.object_geoms)
+        openings = np.empty(2)
+        (_, left_hi), (right_lo, _) = self._finger_reach
+        # left finger at opening q spans x - q: clear when left_hi - q <= obj_lo - margin
+        need = np.concatenate([[-np.inf], (left_hi - obj_lo)[np.isfinite(left_hi - obj_lo)]])
+        openings[0] = need.max() + margin
+        # right finger at opening q spans x + q: clear when right_lo + q >= obj_hi + margin
+        need = np.concatenate([[-np.inf], (obj_hi - right_lo)[np.isfinite(obj_hi - right_lo)]])
+        openings[1] = need.max() + margin
+        low, high = ids.jaw_range[:, 0], ids.jaw_range[:, 1]
+        # a finger that meets nothing closes from its lower limit's side of the joint range
+        openings = np.where(np.isfinite(openings), openings, low)
+        openings = np.clip(openings, low, high)
+        data.qpos[ids.jaw_qpos] = openings
+        mujoco.mj_kinematics(model, data)
+        # Lines 1 mm apart can miss a thin spike: back off by what the exact distance lacks.
+        for side in range(2):
+            for _ in range(8):
+                if len(ids.finger_geoms[side]) == 0 or len(ids.object_geoms) == 0:
+                    break
+                lack = margin / 2 - finger_object_distance(model, data, ids, side)
+                if lack <= 0 or openings[side] >= high[side]:
+                    break
+                openings[side] = min(openings[side] + lack + margin / 2, high[side])
+                data.qpos[ids.jaw_qpos[side]] = openings[side]
+                mujoco.mj_kinematics(model, data)
+        data.ctrl[ids.grip_act] = openings
+        return openings
+
+
+def finger_object_contacts(model: mujoco.MjModel, data: mujoco.MjData, ids: SceneIds) -> int:
+    """Number of active contacts between a finger geom and an object geom in ``data``."""
+    n = data.ncon
+    if n == 0:
+        return 0
+    geoms = data.contact.geom[:n]
+    fingers = ids.all_finger_geoms
+    a = np.isin(geoms[:, 0], fingers) & np.isin(geoms[:, 1], ids.object_geoms)
+    b = np.isin(geoms[:, 1], fingers) & np.isin(geoms[:, 0], ids.object_geoms)
+    return int(np.count_nonzero(a | b))

@@ -1,0 +1,101 @@
+"""The PyBullet peer (the original Fit2Form protocol): clear cases and its step accounting.
+
+A full evaluation of a held grasp is ~20k PyBullet steps (about 1 s on one core); the module
+runs in about 6 s.
+"""
+
+import dataclasses
+import importlib
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pybullet")
+
+from f2f_jax.geometry import imprint_fingers, wsg50_fingers  # noqa: E402
+from f2f_jax.geometry.hulls import Hulls, finger_hulls  # noqa: E402
+
+peer = importlib.import_module("benchmarks.pybullet_original")
+
+PROTO = peer.PROTOCOL
+# Fewest steps one grasp attempt can take: settle, open, lower (at least one step), close,
+# lift (at least one step), success check.
+MIN_GRASP_STEPS = PROTO.settle_min_steps + 2 * PROTO.jaw_motion_steps + 2 + PROTO.check_steps
+PUSH_TRIAL_STEPS = PROTO.push_steps + PROTO.push_hold_steps + PROTO.check_steps
+
+
+@pytest.fixture(scope="module")
+def sphere_object(sphere_tsdf, cfg):
+    # a sphere is convex: one hull of its surface is its exact collision shape (up to 32 vertices)
+    return peer.convex_object_hulls(sphere_tsdf, cfg)
+
+
+@pytest.fixture(scope="module")
+def sphere_imprint(sphere_tsdf, cfg):
+    left, right = imprint_fingers(sphere_tsdf, cfg)
+    return finger_hulls(left, cfg), finger_hulls(right, cfg)
+
+
+def beside_the_gripper(hulls: Hulls, cfg) -> Hulls:
+    """The same object moved two cube widths along y: the fingers close on empty space."""
+    shift = np.array([0.0, 2 * cfg.geometry.cube_size, 0.0], np.float32)
+    return Hulls(np.where(hulls.valid[:, None, None], hulls.vertices + shift, 0.0), hulls.counts)
+
+
+def test_sphere_between_its_imprint_fingers_is_lifted_and_held(sphere_object, sphere_imprint):
+    out = peer.simulate_original(sphere_object, *sphere_imprint)
+    assert out.shape == (11,) and out.dtype == np.uint8
+    assert out[0] == 1, f"imprint fingers dropped the sphere: {out}"
+    assert out[1:5].all(), f"a 1.5 N push broke the imprint cage: {out}"
+    assert out[5:].sum() >= 4, f"most turned spheres should be grasped again: {out}"
+
+
+def test_fingers_that_miss_score_zero_after_one_attempt(cfg, sphere_object, sphere_imprint):
+    outcomes, stats = peer.evaluate_original(
+        [beside_the_gripper(sphere_object, cfg), sphere_object], [sphere_imprint[0]] * 2,
+        [sphere_imprint[1]] * 2, cfg=cfg)
+    assert outcomes.shape == (2, 11)
+    assert not outcomes[0].any(), f"a finger that misses scored {outcomes[0]}"
+    assert outcomes[1, 0] == 1
+    miss, held = stats["steps_per_evaluation"]
+    assert stats["steps"] == miss + held and stats["evaluations"] == 2
+    # one attempt only (no pushes, no turned regrasps after a failed grasp), and no move gave up
+    # after max_move_steps: settling and the two gripper moves take a few hundred steps each
+    assert MIN_GRASP_STEPS <= miss < 3 * MIN_GRASP_STEPS
+    # a held grasp runs all 11 trials: 7 grasp attempts and 4 pushes
+    assert held >= 7 * MIN_GRASP_STEPS + 4 * PUSH_TRIAL_STEPS
+    assert stats["unstable"] == 0
+    assert stats["seconds"] >= stats["build_seconds"] > 0
+    np.testing.assert_allclose(stats["steps_per_second"], stats["steps"] / stats["seconds"])
+
+
+def test_flat_fingers_need_more_than_the_papers_friction(cfg, sphere_object):
+    """Flat tips squeeze with 2 x 0.2 x 1.0 N < 0.49 N weight: the sphere slips at the paper's
+    friction and is lifted when the finger-object coefficient is 1.0 (Bullet multiplies the
+    object's coefficient by the fingers' 1.0)."""
+    left, right = (finger_hulls(f, cfg) for f in wsg50_fingers(cfg))
+    slippery = peer.simulate_original(sphere_object, left, right, cfg=cfg)
+    grippy_cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, finger_friction=1.0))
+    with peer.OriginalSession(grippy_cfg) as session:
+        grippy = session.simulate(sphere_object, left, right)
+    assert slippery[0] == 0 and not slippery.any()
+    assert grippy[0] == 1
+
+
+def test_empty_finger_scores_zero_without_simulating(cfg, sphere_object, sphere_imprint):
+    empty = Hulls(np.zeros((cfg.geometry.finger_hulls, cfg.geometry.hull_vertices, 3), np.float32),
+                  np.zeros(cfg.geometry.finger_hulls, np.int32))
+    outcomes, stats = peer.evaluate_original([sphere_object], [empty], [sphere_imprint[1]], cfg=cfg)
+    assert not outcomes.any()
+    assert stats["steps"] == 0
+
+
+def test_a_push_beyond_the_friction_grip_breaks_the_hold(cfg, sphere_object):
+    """Flat tips at friction 1.0 hold the sphere by 2 x 1.0 x 1.0 N of friction: enough for its
+    0.49 N weight, not for 5 N pushes in the plane of the pads (down, and down-sideways along y).
+    S3 and S4 also press the sphere into one pad, which raises the normal force: not asserted."""
+    left, right = (finger_hulls(f, cfg) for f in wsg50_fingers(cfg))
+    pushy = cfg.replace(sim=dataclasses.replace(cfg.sim, finger_friction=1.0, push_force=5.0))
+    out = peer.simulate_original(sphere_object, left, right, cfg=pushy)
+    assert out[0] == 1
+    assert not out[1:3].any(), f"5 N pushes should break a 2 N friction grip: {out}"
