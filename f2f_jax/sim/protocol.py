@@ -226,15 +226,17 @@ class GraspRunner:
 
 
 def run_trials(model: mujoco.MjModel, cfg: Config | None = None, *,
-               data: mujoco.MjData | None = None) -> TrialResult:
+               data: mujoco.MjData | None = None, runner: GraspRunner | None = None) -> TrialResult:
     """All 11 trials of one candidate on one model (from ``scene.build_model`` at yaw 0).
+
+    runner: a GraspRunner (or subclass, e.g. one that records frames) for this model.
 
     Returns a TrialResult; never raises for unstable physics (counted in ``unstable``).
     """
     cfg = cfg or Config()
     s = cfg.sim
     start = time.perf_counter()
-    runner = GraspRunner(model, cfg, data)
+    runner = runner if runner is not None else GraspRunner(model, cfg, data)
     result = TrialResult.zeros(s.n_trials)
     n_push = len(s.stability_directions)
 

@@ -1,0 +1,173 @@
+"""Look at one grasp: a PNG strip of the trial phases, so a person can see why a grasp failed.
+
+    python -m f2f_jax.sim.view --object sphere --fingers imprint --out grasp.png
+    python -m f2f_jax.sim.view --object mug.obj --fingers wsg50 --friction 1.0 --out grasp.png
+
+Panels: after settling, after closing, after lifting, after holding (the grasp), then the end of
+each push S1..S4 and of each turned grasp R-30..R+30, titled with the trial's outcome.  Drawn
+with matplotlib from the simulated poses of the collision pieces (no OpenGL needed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
+from scipy.spatial import ConvexHull  # noqa: E402
+
+from f2f_jax import config as config_mod  # noqa: E402
+from f2f_jax.config import TRIAL_NAMES, Config  # noqa: E402
+from f2f_jax.sim.protocol import GraspRunner, run_trials  # noqa: E402
+
+
+@dataclasses.dataclass
+class Frame:
+    label: str
+    geom_xpos: np.ndarray  # [G, 3]
+    geom_xmat: np.ndarray  # [G, 9]
+
+
+class RecordingRunner(GraspRunner):
+    """A GraspRunner that keeps the geom poses at the end of every phase it runs."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.frames: list[Frame] = []
+        self.trial = "grasp"
+        self._phase = 0
+
+    def snapshot(self, label: str) -> None:
+        mujoco.mj_kinematics(self.model, self.data)
+        self.frames.append(Frame(label, self.data.geom_xpos.copy(), self.data.geom_xmat.copy()))
+
+    def advance(self, n, *, stop_below=None, chunk=25):
+        try:
+            return super().advance(n, stop_below=stop_below, chunk=chunk)
+        finally:
+            self._phase += 1
+            self.snapshot(f"{self.trial}:{self._phase}")
+
+    def grasp(self, yaw):
+        self._phase = 0
+        self.trial = "grasp" if not self.frames else f"turn {np.rad2deg(yaw):+.0f}°"
+        return super().grasp(yaw)
+
+    def push(self, state, z_start, direction):
+        self._phase = 0
+        self.trial = f"push {np.round(direction, 2).tolist()}"
+        return super().push(state, z_start, direction)
+
+
+def _geom_faces(model: mujoco.MjModel, geom: int) -> np.ndarray | None:
+    """[F, 3, 3] triangles of a mesh geom in its own frame."""
+    if model.geom_type[geom] != mujoco.mjtGeom.mjGEOM_MESH:
+        return None
+    mesh = model.geom_dataid[geom]
+    adr, num = model.mesh_vertadr[mesh], model.mesh_vertnum[mesh]
+    verts = np.asarray(model.mesh_vert[adr: adr + num], np.float64)
+    try:
+        hull = ConvexHull(verts)
+    except Exception:  # noqa: BLE001 - a degenerate placeholder piece is simply not drawn
+        return None
+    return verts[hull.simplices]
+
+
+def _draw(ax, model, frame: Frame, faces: dict, colours: dict, title: str):
+    for g, tri in faces.items():
+        rot = frame.geom_xmat[g].reshape(3, 3)
+        world = tri @ rot.T + frame.geom_xpos[g]
+        ax.add_collection3d(Poly3DCollection(world * 100, facecolor=colours[g],
+                                             edgecolor=(0, 0, 0, 0.15), linewidths=0.1))
+    ax.plot([-8, 8], [0, 0], [0, 0], color="0.4", lw=1)  # the floor, seen edge-on
+    ax.set(xlim=(-8, 8), ylim=(-8, 8), zlim=(-1, 15))
+    ax.set_box_aspect((1, 1, 1))
+    ax.view_init(elev=15, azim=-80)  # nearly along -y: the jaws close left-right
+    ax.set_title(title, fontsize=8)
+    ax.set_xticks([]), ax.set_yticks([]), ax.set_zticks([])
+
+
+def render_trials(model: mujoco.MjModel, cfg: Config, path) -> np.ndarray:
+    """Run the 11 trials of one model, draw the phases to ``path`` (PNG); returns the outcome."""
+    runner = RecordingRunner(model, cfg)
+    result = run_trials(model, cfg, runner=runner)
+    ids = runner.ids
+    shown = {int(g): (0.85, 0.45, 0.2, 1.0) for g in ids.object_geoms}
+    # fingers see-through, so the object inside a cage stays visible
+    shown.update({int(g): (0.25, 0.45, 0.8, 0.25) for g in ids.all_finger_geoms})
+    faces = {g: f for g in shown if (f := _geom_faces(model, g)) is not None}
+    # The last frame of each trial, plus the grasp's phases.
+    by_trial: dict[str, list[Frame]] = {}
+    for f in runner.frames:
+        by_trial.setdefault(f.label.split(":")[0], []).append(f)
+    panels = []
+    grasp_frames = by_trial.pop("grasp", [])
+    for name, f in zip(("settled", "closed"), grasp_frames[:2]):
+        panels.append((f, name))
+    if grasp_frames:
+        panels.append((grasp_frames[-1], f"grasp: {'held' if result.outcome[0] else 'dropped'}"))
+    for k, (trial, frames) in enumerate(by_trial.items()):
+        index = 1 + k
+        ok = result.outcome[index] if index < len(result.outcome) else 0
+        panels.append((frames[-1], f"{TRIAL_NAMES[index]}: {'held' if ok else 'failed'}"))
+    cols = min(len(panels), 5)
+    rows = int(np.ceil(len(panels) / cols))
+    fig = plt.figure(figsize=(3 * cols, 3 * rows))
+    for i, (frame, title) in enumerate(panels):
+        _draw(fig.add_subplot(rows, cols, i + 1, projection="3d"), model, frame, faces, shown, title)
+    scores = "".join(str(int(v)) for v in result.outcome)
+    fig.suptitle(f"outcome {scores[0]} {scores[1:5]} {scores[5:]}  ({result.steps} steps)")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=80)
+    plt.close(fig)
+    os.replace(tmp, path)
+    return result.outcome
+
+
+def main(argv=None) -> int:
+    from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, wsg50_fingers
+    from f2f_jax.geometry.hulls import finger_hulls, object_hulls
+    from f2f_jax.sim.scene import build_model
+
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--object", default="sphere", help="'sphere', 'box' or a mesh file")
+    p.add_argument("--fingers", default="imprint", choices=["imprint", "wsg50"])
+    p.add_argument("--friction", type=float, default=None, help="finger-object friction")
+    p.add_argument("--config", default="default", choices=sorted(config_mod.CONFIGS))
+    p.add_argument("--out", default="grasp.png")
+    args = p.parse_args(argv)
+    import trimesh
+
+    cfg = config_mod.get(args.config)
+    if args.object == "sphere":
+        mesh = trimesh.creation.icosphere(subdivisions=3)
+    elif args.object == "box":
+        mesh = trimesh.creation.box((0.04, 0.03, 0.05))
+    else:
+        from f2f_jax.data.sources import load_mesh
+
+        mesh = load_mesh(args.object)
+    obj = mesh_to_tsdf(mesh)
+    left, right = imprint_fingers(obj) if args.fingers == "imprint" else wsg50_fingers()
+    if args.friction is not None:
+        cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, finger_friction=args.friction))
+    model = build_model(object_hulls(obj, cfg), finger_hulls(left, cfg), finger_hulls(right, cfg), cfg)
+    outcome = render_trials(model, cfg, args.out)
+    print(f"{args.out}: outcome {dict(zip(TRIAL_NAMES, outcome.tolist()))}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
