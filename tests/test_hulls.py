@@ -342,3 +342,10 @@ def test_reduce_pieces_merges_touching_pieces_and_drops_specks():
     assert sorted(round(ConvexHull(p).volume, 6) for p in out) == [1.0, 2.0]
     same, report = reduce_pieces(pieces, 4)
     assert len(same) == 4 and report["merged"] == report["dropped"] == 0
+
+
+def test_noise_volume_does_not_hang_in_coacd(tmp_path):
+    noise = np.random.default_rng(0).uniform(-1, 1, (40, 40, 40)).astype(np.float32)
+    with pytest.warns(RuntimeWarning, match="faces"):
+        h = object_hulls(noise, cache_dir=tmp_path)
+    assert h.n_pieces >= 1

@@ -1,4 +1,4 @@
-"""Shape volumes -> at most K convex pieces of at most V vertices: the simulator's collision geometry.
+"""Shape volumes -> at most K convex pieces of at most V vertices: the collision geometry.
 
 Every shape enters the simulator as a :class:`Hulls`: ``[K, V, 3]`` vertices (metres, the volume's
 local frame, config.py) and ``[K]`` vertex counts.  K and V are fixed per layout, so many shapes
@@ -57,6 +57,7 @@ _CONVEX_TOLERANCE_VOXELS = 1.0
 _CONVEX_TEST_VERTICES = 64  # its hull is judged by a 64-vertex inner approximation
 # Free object slots go to pieces whose V-vertex reduction misses more than this.
 _REFINE_TOLERANCE_VOXELS = 0.5
+_MAX_COACD_FACES = 80_000
 _POINT_CHUNK = 4_000_000  # point-facet pairs per block in points_in_hulls (32 MB of float64)
 
 
@@ -321,8 +322,8 @@ def hull_fit(tsdf, hulls: Hulls, cfg=None, *, supersample: int = 2) -> dict:
 # Tiling measures intrusion exactly up to this many voxels from the solid (a windowed 2.5D
 # distance); beyond it by the height above the column's own solid, an upper bound.
 _REACH_VOXELS = 4
-_TILE_POINTS = 128  # top corners per tile hull at most (bigger tiles are subsampled)
-_JUDGE_COLUMNS = 600  # tiles with more columns are judged on every other column
+_TILE_POINTS = 256  # top corners per tile hull at most (bigger tiles are subsampled)
+_JUDGE_COLUMNS = 300  # tiles with more columns are judged on every other column
 _BISECTIONS = 14  # balance offset to ~(height range) / 2^14, well under a micrometre
 # The clip plane allows intrusion into the empty space 0.8 times the shortfall it cuts from the
 # solid: a simulated finger that hits the object where the real one would not (premature contact,
@@ -761,6 +762,13 @@ def decompose_mesh(mesh: trimesh.Trimesh, settings: CoacdSettings | None = None,
     if len(verts) < 4 or len(faces) == 0 or not np.all(np.isfinite(verts)):
         raise DecompositionError(f"{name}: cannot decompose a mesh with {len(verts)} vertices and "
                                  f"{len(faces)} faces (or NaN vertices)")
+    if len(faces) > _MAX_COACD_FACES:
+        # marching-cubes meshes of real objects have 10-25k faces; a noise-like volume gives
+        # 200k+, on which coacd runs for many minutes
+        warnings.warn(f"{name}: {len(faces)} faces is more than coacd gets here "
+                      f"({_MAX_COACD_FACES}); using one convex hull of the whole mesh",
+                      RuntimeWarning, stacklevel=2)
+        return [_hull_vertices(verts)]
     if settings.smooth_iterations > 0:
         smooth = trimesh.Trimesh(verts.copy(), faces.copy(), process=False)
         trimesh.smoothing.filter_taubin(smooth, iterations=settings.smooth_iterations)
