@@ -186,8 +186,8 @@ def test_a_candidate_that_cannot_be_built_fails_alone(sphere_tsdf, sphere_hulls,
 
 def test_evaluate_input_errors(sphere_tsdf, tiny):
     left, right = wsg50_fingers(tiny)
-    with pytest.raises(NotImplementedError, match="mjx"):
-        evaluate([sphere_tsdf], [left], [right], backend="mjx", cfg=tiny)
+    with pytest.raises(ValueError, match="unknown backend"):
+        evaluate([sphere_tsdf], [left], [right], backend="bullet", cfg=tiny)
     with pytest.raises(VolumeError, match=r"lefts\[1\]"):
         evaluate([sphere_tsdf] * 2, [left, left[:20]], [right] * 2, cfg=tiny)
     with pytest.raises(VolumeError, match=r"objects\[0\]"):

@@ -207,7 +207,7 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
                 cfg: Config | None = None, *, object_yaw: float = 0.0,
                 object_mass: float | None = None, friction: float | None = None,
                 object_xy=(0.0, 0.0), flat_tips: bool = False,
-                pad_collides: bool = False) -> mujoco.MjModel:
+                pad_collides: bool = False, max_geom_pairs: int | None = None) -> mujoco.MjModel:
     """Compile the grasp scene for one (object, left finger, right finger) triple.
 
     object_hulls: Hulls [K_o, V, 3], metres, the object volume's local frame (= world frame of the
@@ -224,6 +224,9 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
     pad_collides: give placeholder pieces the collision bits of real ones (a batched backend's
         template, where a slot may be real for another candidate); they lie where nothing
         reaches: object placeholders at the centre of a real piece, finger ones behind the mount.
+
+    max_geom_pairs: MJX's broad-phase cap on pairs per collision function (a numeric read by
+        MJX; plain MuJoCo ignores it).
 
     The object's lowest point touches the floor (z = 0); the jaws start at their upper joint
     limit: ``JawOpener`` moves them in so nothing touches.  Raises DecompositionError
@@ -283,6 +286,8 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
             tip.condim = s.condim
             tip.group = 2
 
+    if max_geom_pairs is not None:
+        spec.add_numeric(name="max_geom_pairs", data=[float(max_geom_pairs)])
     try:
         return spec.compile()
     except ValueError as exc:

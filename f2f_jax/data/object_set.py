@@ -1,0 +1,62 @@
+"""An object set on disk: meshes turned into TSDF volumes once, with a fixed split."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from f2f_jax.config import GeometryConfig
+from f2f_jax.data.sources import object_source
+from f2f_jax.data.splits import load_split, make_split, save_split
+from f2f_jax.errors import MeshError
+from f2f_jax.geometry import mesh_to_tsdf
+
+log = logging.getLogger(__name__)
+
+
+def load_or_make_objects(source: str, n: int | None, seed: int, directory, cfg: GeometryConfig | None = None,
+                         *, progress: bool = True) -> tuple[np.ndarray, list[str]]:
+    """TSDFs [N, R, R, R] float32 and names of an object set, made once and kept in ``directory``
+    (``objects.npz``, ``split.json``, ``source.json``).  Meshes that cannot become a volume are
+    skipped and logged.  A directory made from another source, n or seed is refused rather than
+    silently reused."""
+    cfg = cfg or GeometryConfig()
+    directory = Path(directory)
+    meta = {"source": str(source), "n": n, "seed": seed, "resolution": cfg.resolution}
+    npz, meta_path = directory / "objects.npz", directory / "source.json"
+    if npz.exists() and meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if old != meta:
+            raise ValueError(f"{directory} holds objects made from {old}, not {meta}; "
+                             "choose another directory")
+        data = np.load(npz)
+        return data["tsdf"].astype(np.float32), [str(x) for x in data["names"]]
+    meshes = object_source(source, n, seed)
+    tsdfs, names = [], []
+    for mesh in tqdm(meshes, desc="objects -> TSDF", unit="obj", disable=not progress):
+        name = mesh.metadata.get("name", f"object{len(names)}")
+        try:
+            tsdfs.append(mesh_to_tsdf(mesh, cfg, name=name))
+            names.append(name)
+        except MeshError as exc:
+            log.warning("skipped: %s", exc)
+    if not tsdfs:
+        raise MeshError(f"no usable object in {source!r}")
+    directory.mkdir(parents=True, exist_ok=True)
+    tmp = directory / "objects.tmp.npz"
+    np.savez_compressed(tmp, tsdf=np.stack(tsdfs).astype(np.float16), names=np.array(names))
+    os.replace(tmp, npz)
+    save_split(directory / "split.json", make_split(names, seed=seed))
+    tmp = meta_path.with_name("source.json.tmp")
+    tmp.write_text(json.dumps(meta))
+    os.replace(tmp, meta_path)
+    return np.stack(tsdfs).astype(np.float16).astype(np.float32), names
+
+
+def object_split(directory) -> dict[str, list[str]]:
+    return load_split(Path(directory) / "split.json")

@@ -1,0 +1,577 @@
+"""Batched backend: many candidate grasps at once in MJX (JAX), on CPU, GPU or TPU.
+
+One template model per layout (``scene.describe_layout``: K pieces per body, V vertices per
+piece); every candidate's geometry (convex mesh data, geom poses and bounds, body mass and
+inertia) is stacked along a batch axis and vmapped together with the trials, phases run as
+``lax.scan`` over steps, and each phase program is jitted once per (layout, batch size).
+
+Two things make mesh grasps tractable in MJX:
+
+* **One collision function for all piece pairs.**  Stock MJX compiles a separate convex-convex
+  function for every pair of distinct meshes (8 object x 32 finger pieces = 256 functions: tens
+  of minutes to compile).  Here every piece's convex data is padded to one size
+  (``ConvexSizes``) and the mesh-mesh pairs form a single group whose collider gathers each
+  pair's data by geom, so one vmapped function serves them all; MJX's ``max_geom_pairs`` broad
+  phase keeps only the closest pairs each step.  This relies on MJX internals of mujoco-mjx
+  3.17 (pinned): ``collision_driver._geom_groups`` and ``_COLLISION_FUNC``.
+* **Convex data computed here, not by MJX.**  ``mjx.put_model`` derives it with trimesh, about
+  0.5 s per model; ``convex_data`` takes ~1 ms per piece from the hull's vertices.
+
+The protocol is the one of ``protocol.py`` (same phases, lengths, thresholds and opening rule):
+grasps at yaw 0 first; only candidates that held go on to the four pushes (from the saved
+post-grasp state) and the six turned grasps, compacted into smaller batches, so failures stop
+costing work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+import time
+import warnings
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jp
+import mujoco
+import numpy as np
+from scipy.spatial import ConvexHull
+
+from f2f_jax.config import Config
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    from mujoco import mjx
+    from mujoco.mjx._src import collision_convex, collision_driver
+    from mujoco.mjx._src import math as mjx_math
+    from mujoco.mjx._src import mesh as mjx_mesh
+    from mujoco.mjx._src.collision_types import ConvexInfo, FunctionKey
+    from mujoco.mjx._src.types import ConvexMesh, GeomType
+
+# Model fields that differ between candidates of one layout (found by comparing models of very
+# different triples); everything else is shared with the template.
+BATCHED_FIELDS = (
+    "qpos0", "body_pos", "body_ipos", "body_iquat", "body_mass", "body_subtreemass",
+    "body_inertia", "body_invweight0", "dof_invweight0", "dof_M0", "geom_size", "geom_aabb",
+    "geom_rbound", "geom_pos", "geom_quat", "geom_friction",
+)
+MAX_POLYGON = 12  # vertices kept per merged coplanar face (MJX allows 20)
+# Mesh-mesh pairs kept per step by MJX's broad phase (closest bounding spheres first).  A finger
+# pressing an object touches it with a few pieces; 16 keeps every pair that can touch in the
+# grasps we looked at while bounding the narrow phase's cost.
+MAX_GEOM_PAIRS = 16
+_MERGED = (-1, -1)  # data_ids of the single mesh-mesh collision group
+
+
+# --------------------------------------------------------------------------------------------
+# Convex data of one piece, padded to fixed sizes
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ConvexSizes:
+    """Padded sizes of every piece's convex data: vertices, faces, face polygon, edges."""
+
+    vertices: int
+    faces: int
+    polygon: int
+    edges: int
+
+    @classmethod
+    def for_vertices(cls, v: int) -> "ConvexSizes":
+        # Euler: a convex polyhedron of v vertices has at most 2v - 4 faces and 3v - 6 edges.
+        return cls(vertices=v, faces=2 * v - 4, polygon=MAX_POLYGON, edges=3 * v - 6)
+
+
+def _order_polygon(points: np.ndarray, idx: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """Vertex indices of a planar convex polygon, counter-clockwise about ``normal``."""
+    p = points[idx]
+    c = p.mean(0)
+    a = np.cross(normal, [1.0, 0.0, 0.0])
+    if np.linalg.norm(a) < 1e-6:
+        a = np.cross(normal, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(normal, a)
+    ang = np.arctan2((p - c) @ b, (p - c) @ a)
+    return idx[np.argsort(ang)]
+
+
+def convex_data(vertices: np.ndarray, sizes: ConvexSizes) -> ConvexMesh:
+    """MJX convex-mesh data of the hull of ``vertices`` ([n, 3], the mesh's own frame).
+
+    Coplanar hull triangles are merged into polygons (as MJX does); faces, polygon vertices and
+    edges are padded by repeating the last entry, which adds no new separating axis.
+    Returns numpy arrays: vert [V, 3], face [F, P, 3], face_normal [F, 3], edge [E, 2],
+    edge_face_normal [E, 2, 3].
+    """
+    pts = np.asarray(vertices, np.float64)
+    hull = ConvexHull(pts)
+    keep = hull.vertices
+    remap = -np.ones(len(pts), np.int64)
+    remap[keep] = np.arange(len(keep))
+    vert = pts[keep]
+    # group triangles by plane
+    eq = hull.equations
+    key = np.round(eq / 1e-6).astype(np.int64)
+    _, group = np.unique(key, axis=0, return_inverse=True)
+    faces, normals = [], []
+    for gi in range(group.max() + 1):
+        tris = hull.simplices[group.ravel() == gi]
+        idx = np.unique(remap[tris.ravel()])
+        n = eq[group.ravel() == gi][0, :3]
+        poly = _order_polygon(vert, idx, n)
+        if len(poly) > sizes.polygon:
+            poly = poly[:: len(poly) // sizes.polygon + 1]
+        faces.append(poly)
+        normals.append(n / np.linalg.norm(n))
+    if len(vert) > sizes.vertices or len(faces) > sizes.faces:
+        raise ValueError(f"hull of {len(vert)} vertices / {len(faces)} faces exceeds {sizes}")
+    # edges: polygon sides shared by two faces
+    edge_map: dict[tuple[int, int], list[int]] = {}
+    for fi, poly in enumerate(faces):
+        for a, b in zip(poly, np.roll(poly, -1)):
+            if a != b:
+                edge_map.setdefault((min(a, b), max(a, b)), []).append(fi)
+    edges = [(k, v[:2]) for k, v in edge_map.items() if len(v) >= 2]
+    edge = np.array([k for k, _ in edges], np.int64)
+    edge_n = np.array([[normals[v[0]], normals[v[1]]] for _, v in edges])
+    face = np.stack([np.pad(p, (0, sizes.polygon - len(p)), mode="edge") for p in faces])
+    pad = lambda x, n: np.concatenate([x, np.repeat(x[-1:], n - len(x), axis=0)])  # noqa: E731
+    vert_p = pad(vert, sizes.vertices)
+    return ConvexMesh(
+        vert=vert_p.astype(np.float32),
+        face=pad(vert[face], sizes.faces).astype(np.float32),
+        face_normal=pad(np.array(normals), sizes.faces).astype(np.float32),
+        edge=pad(edge, sizes.edges).astype(np.int32),
+        edge_face_normal=pad(edge_n, sizes.edges).astype(np.float32),
+    )
+
+
+def model_convex(m: mujoco.MjModel, sizes: ConvexSizes) -> list[ConvexMesh]:
+    """convex_data of every mesh of a compiled model, in mesh order."""
+    out = []
+    for i in range(m.nmesh):
+        adr, num = m.mesh_vertadr[i], m.mesh_vertnum[i]
+        out.append(convex_data(m.mesh_vert[adr: adr + num], sizes))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# One collision group for every mesh-mesh pair
+# --------------------------------------------------------------------------------------------
+def _merged_groups(m):
+    groups = _STOCK_GEOM_GROUPS(m)
+    merged: dict = {}
+    for key, pairs in groups.items():
+        if key.types == (GeomType.MESH, GeomType.MESH):
+            key = FunctionKey(key.types, _MERGED, key.condim)
+        merged.setdefault(key, []).extend(pairs)
+    return merged
+
+
+def _mesh_mesh(m, d, key, geom):
+    """Contacts of many mesh-mesh pairs at once; each pair's convex data gathered by geom."""
+    if key.data_ids != _MERGED:
+        return _STOCK_CONVEX(m, d, key, geom)
+    stacked = jax.tree_util.tree_map(lambda *x: jp.stack(x), *m._impl.mesh_convex)
+    dataid = jp.asarray(m.geom_dataid)
+
+    def info(g):
+        c = jax.tree_util.tree_map(lambda x: x[dataid[g]], stacked)
+        return ConvexInfo(d.geom_xpos[g], d.geom_xmat[g], m.geom_size[g], c.vert, c.face,
+                          c.face_normal, c.edge, c.edge_face_normal)
+
+    def pair(c1, c2):
+        dist, pos, n = collision_convex._convex_convex(c1, c2)
+        return dist, pos, jax.vmap(mjx_math.make_frame)(n)
+
+    g1, g2 = geom.T
+    dist, pos, frame = jax.vmap(pair)(info(g1), info(g2))
+    return dist.reshape(-1), pos.reshape(-1, 3), frame.reshape(-1, 3, 3)
+
+
+_mesh_mesh.ncon = 4
+_STOCK_GEOM_GROUPS = collision_driver._geom_groups
+_STOCK_CONVEX = collision_driver._COLLISION_FUNC[(GeomType.MESH, GeomType.MESH)]
+
+
+class merged_mesh_collisions:
+    """Context manager: MJX groups all mesh-mesh pairs into one collision function while
+    models are put and programs traced (the grouping is read at trace time only)."""
+
+    def __enter__(self):
+        collision_driver._geom_groups = _merged_groups
+        collision_driver._COLLISION_FUNC[(GeomType.MESH, GeomType.MESH)] = _mesh_mesh
+        return self
+
+    def __exit__(self, *exc):
+        collision_driver._geom_groups = _STOCK_GEOM_GROUPS
+        collision_driver._COLLISION_FUNC[(GeomType.MESH, GeomType.MESH)] = _STOCK_CONVEX
+        return False
+
+
+# --------------------------------------------------------------------------------------------
+# Candidates of one layout as a batch of model fields
+# --------------------------------------------------------------------------------------------
+@dataclass
+class CandidateBatch:
+    """Per-candidate model data, stacked on axis 0 (numpy).
+
+    fields: {name: [B, ...]} for BATCHED_FIELDS; convex: ConvexMesh with leaves [B, nmesh, ...];
+    planes: [B, G, F, 4] face planes (n, d; n . p + d <= 0 inside) of the object and finger
+    geoms in their own frames, for the jaw opening rule.
+    """
+
+    fields: dict
+    convex: ConvexMesh
+    planes: np.ndarray
+
+    def __len__(self):
+        return self.planes.shape[0]
+
+    def take(self, idx) -> "CandidateBatch":
+        idx = np.asarray(idx)
+        return CandidateBatch({k: v[idx] for k, v in self.fields.items()},
+                              jax.tree_util.tree_map(lambda x: x[idx], self.convex), self.planes[idx])
+
+
+def _planes(c: ConvexMesh, faces: int) -> np.ndarray:
+    """[faces, 4] planes of a padded convex mesh; padding rows (0, 0, 0, -1) exclude nothing."""
+    n = np.asarray(c.face_normal, np.float64)
+    d = -np.einsum("fk,fk->f", n, np.asarray(c.face[:, 0], np.float64))
+    out = np.concatenate([n, d[:, None]], 1)
+    # repeated (padded) faces are harmless duplicates; keep them as they are
+    return out[:faces]
+
+
+class MjxGraspSimulator:
+    """The 11 trials for batches of candidates sharing one layout, in MJX.
+
+    cfg: Config (SimConfig phases and physics, GeometryConfig layout).
+    template: a model from ``scene.build_model(..., pad_collides=True)``; any candidate's.
+    """
+
+    def __init__(self, template: mujoco.MjModel, cfg: Config):
+        from f2f_jax.sim.protocol import lift_targets
+        from f2f_jax.sim.scene import scene_ids
+
+        self.cfg = cfg
+        self.sizes = ConvexSizes.for_vertices(cfg.geometry.hull_vertices)
+        self.ids = scene_ids(template)
+        self.template_mj = template
+        self.geoms = np.concatenate([self.ids.object_geoms, self.ids.all_finger_geoms])
+        n_obj = len(self.ids.object_geoms)
+        nf = len(self.ids.finger_geoms[0])
+        self.geom_role = np.array([0] * n_obj + [1] * nf + [2] * nf)  # object, left, right
+        tmpl = template
+        orig = mjx_mesh.convex
+        mjx_mesh.convex = lambda m, i: jax.tree_util.tree_map(
+            jp.asarray, convex_data(m.mesh_vert[m.mesh_vertadr[i]: m.mesh_vertadr[i] + m.mesh_vertnum[i]],
+                                    self.sizes))
+        try:
+            with merged_mesh_collisions():
+                self.mx = mjx.put_model(tmpl)
+                self.d0 = mjx.make_data(self.mx)
+        finally:
+            mjx_mesh.convex = orig
+        s = cfg.sim
+        self.n_settle, self.n_close = s.steps(s.settle_time), s.steps(s.close_time)
+        self.n_hold, self.n_push = s.steps(s.hold_time), s.steps(s.push_time)
+        self.n_push_hold = s.steps(s.push_hold_time)
+        targets = lift_targets(cfg)
+        self.lift_ctrl = np.diff(targets) / s.timestep  # per step: exact chord of the profile
+        g = cfg.geometry
+        spacing = 0.0015
+        h = g.cube_size / 2
+        z0 = g.cube_size / 2 + g.rest_offset
+        ys = np.arange(-h, h + spacing / 2, spacing)
+        zs = np.arange(z0 - h, z0 + h + spacing / 2, spacing)
+        yy, zz = np.meshgrid(ys, zs, indexing="ij")
+        self.lines = np.stack([yy.ravel(), zz.ravel()], 1).astype(np.float32)
+        self._programs: dict = {}
+        self.compile_seconds = 0.0
+
+    # ---------------------------------------------------------------- candidates -> batch
+    def batch(self, models: list[mujoco.MjModel]) -> CandidateBatch:
+        """Stack the varying fields of compiled candidate models (same layout as the template)."""
+        fields = {k: np.stack([np.asarray(getattr(m, k)) for m in models]) for k in BATCHED_FIELDS}
+        convex, planes = [], []
+        for m in models:
+            if m.ngeom != self.template_mj.ngeom or m.nmesh != self.template_mj.nmesh:
+                raise ValueError("candidate model does not share the template's layout")
+            meshes = model_convex(m, self.sizes)
+            convex.append(jax.tree_util.tree_map(lambda *x: np.stack(x), *meshes))
+            planes.append(np.stack([_planes(meshes[m.geom_dataid[gid]], self.sizes.faces)
+                                    for gid in self.geoms]))
+        stacked = jax.tree_util.tree_map(lambda *x: np.stack(x), *convex)
+        return CandidateBatch(fields, stacked, np.stack(planes).astype(np.float32))
+
+    # ---------------------------------------------------------------- one candidate, traced
+    def _model(self, fields, convex):
+        nmesh = self.template_mj.nmesh
+        meshes = tuple(jax.tree_util.tree_map(lambda x, i=i: x[i], convex) for i in range(nmesh))
+        return self.mx.replace(**fields).tree_replace({"_impl.mesh_convex": meshes})
+
+    def _intervals(self, planes, xpos, xmat):
+        """Union of the geoms' extents along x on every line: (lo [L], hi [L]), +-inf on a miss.
+        planes: [G, F, 4] geom-local; xpos [G, 3]; xmat [G, 3, 3]."""
+        y, z = jp.asarray(self.lines[:, 0]), jp.asarray(self.lines[:, 1])
+        eps = 1e-12
+
+        def one(carry, geom):
+            lo, hi = carry
+            pl, pos, mat = geom
+            n = pl[:, :3] @ mat.T
+            d = pl[:, 3] - n @ pos
+            c = -(d[:, None] + n[:, 1:2] * y + n[:, 2:3] * z)
+            nx = n[:, 0:1]
+            bound = c / jp.where(jp.abs(nx) > eps, nx, 1.0)
+            upper = jp.where(nx > eps, bound, jp.inf).min(0)
+            lower = jp.where(nx < -eps, bound, -jp.inf).max(0)
+            ok = jp.all((jp.abs(nx) > eps) | (c >= 0), axis=0) & (lower <= upper)
+            return (jp.where(ok, jp.minimum(lo, lower), lo), jp.where(ok, jp.maximum(hi, upper), hi)), None
+
+        init = (jp.full(y.shape, jp.inf), jp.full(y.shape, -jp.inf))
+        (lo, hi), _ = jax.lax.scan(one, init, (planes, xpos, xmat.reshape(-1, 3, 3)))
+        return lo, hi
+
+    def _healthy(self, d):
+        ids, s = self.ids, self.cfg.sim
+        v = d.qvel[ids.object_dof: ids.object_dof + 6]
+        other = d.qvel[np.concatenate([ids.jaw_dof, [self.template_mj.jnt_dofadr[
+            self.template_mj.joint("lift").id]]])]
+        speed = jp.maximum(jp.maximum(jp.linalg.norm(v[:3]), jp.linalg.norm(v[3:]) * 0.052),
+                           jp.abs(other).max())
+        finite = jp.all(jp.isfinite(d.qpos)) & jp.all(jp.isfinite(d.qvel))
+        return finite & (speed <= s.max_speed)
+
+    def _run(self, m, d, bad, xs, body):
+        """One lax.scan over the steps of a program: ``body(d, x) -> d`` sets the controls of a
+        step from its inputs ``x`` (unbatched: every candidate is in the same phase), then MJX
+        steps.  A single mjx.step in the program keeps compile time to one copy of the physics."""
+        def step(carry, x):
+            d, bad = carry
+            d = mjx.step(m, body(d, x))
+            return (d, bad | ~self._healthy(d)), None
+
+        (d, bad), _ = jax.lax.scan(step, (d, bad), xs)
+        return d, bad
+
+    def _held(self, m, d, z_start):
+        # The contacts of the last step (its forward pass): a second collision pass in the
+        # program would double its compile time for a state 2 ms older.
+        ids, s = self.ids, self.cfg.sim
+        c = d._impl.contact
+        g1, g2 = c.geom1, c.geom2
+        obj_g, fin_g = jp.asarray(ids.object_geoms), jp.asarray(ids.all_finger_geoms)
+        obj = jp.isin(g1, obj_g) | jp.isin(g2, obj_g)
+        fin = jp.isin(g1, fin_g) | jp.isin(g2, fin_g)
+        pair = obj & fin
+        touching = jp.any(pair & (c.dist < 0))
+        rise = d.xipos[ids.object_body, 2] - z_start
+        return (rise >= s.success_min_height) & touching, rise
+
+    def _grasp_one(self, fields, convex, planes, yaw):
+        ids, s = self.ids, self.cfg.sim
+        m = self._model(fields, convex)
+        low, high = jp.asarray(ids.jaw_range[:, 0]), jp.asarray(ids.jaw_range[:, 1])
+        role = self.geom_role
+        # finger reach, measured with the mount planes on the gripper's centre plane
+        d = self.d0.replace(qpos=fields["qpos0"].at[ids.jaw_qpos].set(0.0))
+        dk = mjx.kinematics(m, d)
+        gx, gm = dk.geom_xpos[self.geoms], dk.geom_xmat[self.geoms]
+        _, left_hi = self._intervals(planes[role == 1], gx[role == 1], gm[role == 1])
+        right_lo, _ = self._intervals(planes[role == 2], gx[role == 2], gm[role == 2])
+        # place: object turned by yaw, jaws fully open, lift at rest
+        q = fields["qpos0"].at[ids.object_qpos + 3: ids.object_qpos + 7].set(
+            jp.stack([jp.cos(yaw / 2), 0.0, 0.0, jp.sin(yaw / 2)]))
+        q = q.at[ids.jaw_qpos].set(high)
+        ctrl = jp.zeros(self.mx.nu).at[ids.grip_act].set(high)
+        d = self.d0.replace(qpos=q, ctrl=ctrl)
+        obj = role == 0
+
+        def approach(d):
+            """protocol.approach: open to the margin from where the object now lies, then
+            command the jaws beyond any contact so both servos saturate."""
+            dk = mjx.kinematics(m, d)
+            gx, gm = dk.geom_xpos[self.geoms], dk.geom_xmat[self.geoms]
+            obj_lo, obj_hi = self._intervals(planes[obj], gx[obj], gm[obj])
+            gap_l = jp.where(jp.isfinite(left_hi - obj_lo), left_hi - obj_lo, -jp.inf).max()
+            gap_r = jp.where(jp.isfinite(obj_hi - right_lo), obj_hi - right_lo, -jp.inf).max()
+            openings = jp.stack([gap_l, gap_r]) + s.open_margin
+            openings = jp.clip(jp.where(jp.isfinite(openings), openings, low), low, high)
+            return d.replace(qpos=d.qpos.at[ids.jaw_qpos].set(openings),
+                             qvel=d.qvel.at[ids.jaw_dof].set(0.0),
+                             ctrl=d.ctrl.at[ids.grip_act].set(low))
+
+        def body(d, x):
+            k, lift = x
+            d = jax.lax.cond(k == self.n_settle, approach, lambda d: d, d)
+            z = jax.lax.cond(k == self.n_settle, lambda d: d.xipos[ids.object_body, 2],
+                             lambda d: jp.float32(0.0), d)
+            return d.replace(ctrl=d.ctrl.at[ids.lift_act].set(lift)), z
+
+        def step(carry, x):
+            d, bad, z_start = carry
+            d, z = body(d, x)
+            z_start = jp.where(x[0] == self.n_settle, z, z_start)
+            d = mjx.step(m, d)
+            return (d, bad | ~self._healthy(d), z_start), None
+
+        (d, bad, z_start), _ = jax.lax.scan(step, (d, jp.array(False), jp.float32(0.0)),
+                                            self._grasp_xs())
+        ok, rise = self._held(m, d, z_start)
+        state = (d.qpos, d.qvel, d.act, d.ctrl, d.qacc_warmstart, d.time)
+        return ok & ~bad, rise, bad, state, z_start
+
+    def _push_one(self, fields, convex, state, z_start, direction):
+        ids, s = self.ids, self.cfg.sim
+        m = self._model(fields, convex)
+        qpos, qvel, act, ctrl, warm, t = state
+        d = self.d0.replace(qpos=qpos, qvel=qvel, act=act, ctrl=ctrl, qacc_warmstart=warm, time=t)
+        push = jp.zeros((self.mx.nbody, 6)).at[ids.object_body, :3].set(s.push_force * direction)
+        on = np.arange(self.n_push + self.n_push_hold) < self.n_push
+
+        def body(d, push_on):
+            return d.replace(xfrc_applied=jp.where(push_on, push, 0.0))
+
+        d, bad = self._run(m, d, jp.array(False), jp.asarray(on), body)
+        ok, rise = self._held(m, d, z_start)
+        return ok & ~bad, rise, bad
+
+    def _grasp_xs(self):
+        """Per-step inputs of the grasp program: (step index, lift speed command).  The jaws
+        are placed at step n_settle (approach), then the lift follows its profile."""
+        n_lift = len(self.lift_ctrl)
+        total = self.n_settle + self.n_close + n_lift + self.n_hold
+        lift = np.zeros(total, np.float32)
+        lift[self.n_settle + self.n_close: self.n_settle + self.n_close + n_lift] = self.lift_ctrl
+        return jp.arange(total), jp.asarray(lift)
+
+    # ---------------------------------------------------------------- batched programs
+    def _program(self, name: str, size: int):
+        key = (name, size)
+        if key not in self._programs:
+            fn = {"grasp": self._grasp_one, "push": self._push_one}[name]
+            self._programs[key] = jax.jit(jax.vmap(fn))
+        return self._programs[key]
+
+    def _call(self, name, size, *args):
+        """Run a program on one bucket-sized batch, tracing under the merged collision groups.
+        The batch axis is sharded over all local devices."""
+        prog = self._program(name, size)
+        devices = jax.local_devices()
+        if len(devices) > 1 and size % len(devices) == 0:
+            mesh = jax.sharding.Mesh(np.array(devices), ("batch",))
+            sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+            args = jax.device_put(args, sharding)
+        first = not getattr(prog, "_f2f_compiled", False)
+        t = time.perf_counter()
+        with merged_mesh_collisions():
+            out = prog(*args)
+        out = jax.block_until_ready(out)
+        if first:
+            self.compile_seconds += time.perf_counter() - t
+            prog._f2f_compiled = True
+        return out
+
+    @staticmethod
+    def bucket(n: int, minimum: int = 1) -> int:
+        """Batch sizes are powers of two (>= minimum), so few programs are ever compiled."""
+        return max(minimum, 1 << max(0, math.ceil(math.log2(max(n, 1)))))
+
+    def _chunks(self, n: int, chunk: int):
+        for start in range(0, n, chunk):
+            yield np.arange(start, min(start + chunk, n))
+
+    def run(self, batch: CandidateBatch, *, chunk: int = 1024) -> dict:
+        """The 11 trials of every candidate of ``batch``.
+
+        Returns dict(outcome [B, 11] uint8, unstable [B] int, steps [B] int (physics steps
+        simulated per candidate), compile_seconds).
+        """
+        s = self.cfg.sim
+        n = len(batch)
+        n_push, n_rob = len(s.stability_directions), len(s.robustness_angles_deg)
+        outcome = np.zeros((n, s.n_trials), np.uint8)
+        unstable = np.zeros(n, np.int64)
+        steps = np.zeros(n, np.int64)
+        grasp_steps = self.n_settle + self.n_close + len(self.lift_ctrl) + self.n_hold
+        push_steps = self.n_push + self.n_push_hold
+
+        def run_program(name, index, extra):
+            """Run ``name`` over candidates ``index`` with per-item ``extra`` args, in chunks."""
+            results = []
+            for part in self._chunks(len(index), chunk):
+                size = self.bucket(len(part))
+                idx = np.concatenate([part, np.repeat(part[:1], size - len(part))])
+                sub = batch.take(index[idx])
+                args = [sub.fields, sub.convex]
+                if name == "grasp":
+                    args += [sub.planes, *[e[idx] for e in extra]]
+                else:
+                    args += [jax.tree_util.tree_map(lambda x: x[idx], e) for e in extra]
+                out = self._call(name, size, *args)
+                results.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[: len(part)], out))
+            return jax.tree_util.tree_map(lambda *x: np.concatenate(x), *results)
+
+        every = np.arange(n)
+        ok, _, bad, state, z_start = run_program("grasp", every, [np.zeros(n, np.float32)])
+        outcome[:, 0] = ok
+        unstable += bad
+        steps += grasp_steps
+        held = np.nonzero(ok)[0]
+        if len(held):
+            # pushes from each held candidate's post-grasp state
+            idx = np.repeat(held, n_push)
+            dirs = np.tile(np.asarray(s.stability_directions, np.float32), (len(held), 1))
+            st = jax.tree_util.tree_map(lambda x: x[idx], state)
+            pok, _, pbad = run_program("push", idx, [st, z_start[idx], dirs])
+            outcome[held, 1: 1 + n_push] = pok.reshape(len(held), n_push)
+            unstable[held] += pbad.reshape(len(held), n_push).sum(1)
+            steps[held] += n_push * push_steps
+            # turned grasps
+            idx = np.repeat(held, n_rob)
+            yaws = np.tile(np.deg2rad(np.asarray(s.robustness_angles_deg, np.float32)), len(held))
+            rok, _, rbad, _, _ = run_program("grasp", idx, [yaws])
+            outcome[held, 1 + n_push:] = rok.reshape(len(held), n_rob)
+            unstable[held] += rbad.reshape(len(held), n_rob).sum(1)
+            steps[held] += n_rob * grasp_steps
+        return dict(outcome=outcome, unstable=unstable, steps=steps,
+                    compile_seconds=self.compile_seconds)
+
+
+# --------------------------------------------------------------------------------------------
+# evaluate(..., backend="mjx")
+# --------------------------------------------------------------------------------------------
+_SIMULATORS: dict = {}
+
+
+def simulator_for(model: mujoco.MjModel, cfg: Config) -> MjxGraspSimulator:
+    """One simulator (template and compiled programs) per configuration, reused across calls."""
+    key = (cfg, model.ngeom, model.nmesh)
+    if key not in _SIMULATORS:
+        _SIMULATORS[key] = MjxGraspSimulator(model, cfg)
+    return _SIMULATORS[key]
+
+
+def evaluate_models(models: list[mujoco.MjModel], cfg: Config, *, chunk: int | None = None) -> dict:
+    """The 11 trials of compiled candidate models (``build_model(..., pad_collides=True,
+    max_geom_pairs=MAX_GEOM_PAIRS)``, one layout) in MJX.  See MjxGraspSimulator.run."""
+    sim = simulator_for(models[0], cfg)
+    batch = sim.batch(models)
+    if chunk is None:
+        chunk = default_chunk()
+    return sim.run(batch, chunk=chunk)
+
+
+def default_chunk() -> int:
+    """Candidates per program call: from the accelerator's memory where it reports it (measured
+    ~2.5 MB of device memory per candidate with the default layout, ~4x that while compiling),
+    else 64 on a CPU, where larger batches only add latency."""
+    dev = jax.local_devices()[0]
+    stats = dev.memory_stats() if hasattr(dev, "memory_stats") else None
+    if dev.platform == "cpu" or not stats or "bytes_limit" not in stats:
+        return 64
+    per_candidate = 10 * 2**20
+    n = int(0.6 * stats["bytes_limit"] / per_candidate) * jax.local_device_count()
+    return max(8, min(4096, 1 << int(math.log2(max(n, 8)))))
