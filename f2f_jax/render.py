@@ -13,8 +13,6 @@ large grids.
 from __future__ import annotations
 
 import dataclasses
-import os
-import uuid
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +23,7 @@ from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from f2f_jax.config import TRIAL_NAMES, GeometryConfig
 from f2f_jax.geometry import finger_pose, tsdf_to_mesh
+from f2f_jax.fileio import atomic_path
 
 OBJECT_COLOUR = (0.55, 0.58, 0.62)  # grey
 LEFT_COLOUR = (0.90, 0.62, 0.10)  # orange
@@ -149,17 +148,10 @@ def _draw_scores(ax, scores) -> None:
 def _save(fig: Figure, path) -> Path:
     """Write the figure as PNG atomically: a temporary file in the same folder, then a rename."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     FigureCanvasAgg(fig)
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")  # not mkstemp: its mode is 0600
-    try:
+    with atomic_path(path) as tmp:
         with open(tmp, "xb") as f:
             fig.savefig(f, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

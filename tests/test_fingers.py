@@ -13,7 +13,6 @@ from f2f_jax.geometry import (
     is_feasible,
     largest_component,
     mesh_to_tsdf,
-    tsdf_to_mesh,
     wsg50_fingers,
 )
 

@@ -1,5 +1,4 @@
 import matplotlib.image as mpimg
-import numpy as np
 
 from f2f_jax.sim import view
 

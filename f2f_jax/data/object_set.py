@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ from f2f_jax.data.sources import object_source
 from f2f_jax.data.splits import load_split, make_split, save_split
 from f2f_jax.errors import MeshError
 from f2f_jax.geometry import mesh_to_tsdf
+from f2f_jax.fileio import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -47,14 +47,11 @@ def load_or_make_objects(source: str, n: int | None, seed: int, directory, cfg: 
             log.warning("skipped: %s", exc)
     if not tsdfs:
         raise MeshError(f"no usable object in {source!r}")
-    directory.mkdir(parents=True, exist_ok=True)
-    tmp = directory / "objects.tmp.npz"
-    np.savez_compressed(tmp, tsdf=np.stack(tsdfs).astype(np.float16), names=np.array(names))
-    os.replace(tmp, npz)
+    with atomic_path(npz) as tmp:
+        np.savez_compressed(tmp, tsdf=np.stack(tsdfs).astype(np.float16), names=np.array(names))
     save_split(directory / "split.json", make_split(names, seed=seed))
-    tmp = meta_path.with_name("source.json.tmp")
-    tmp.write_text(json.dumps(meta))
-    os.replace(tmp, meta_path)
+    with atomic_path(meta_path) as tmp:  # written last: it marks the set complete
+        tmp.write_text(json.dumps(meta))
     return np.stack(tsdfs).astype(np.float16).astype(np.float32), names
 
 

@@ -10,8 +10,8 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import uuid
 from pathlib import Path
+from f2f_jax.fileio import atomic_path
 
 
 def _rank_key(name: str, seed: int) -> bytes:
@@ -57,20 +57,11 @@ def save_split(path, split: dict) -> Path:
     """Write a split as JSON atomically (temporary file in the same folder, then a rename)."""
     path = Path(path)
     split = _check_split(split, f"save_split({path})")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    # a unique name beside the target (same file system, so the rename is atomic); not mkstemp,
-    # whose 0600 mode would stick to the final file
-    tmp = path.with_name(f".{path.name}.{uuid.uuid4().hex}.tmp")
-    try:
+    with atomic_path(path) as tmp:
         with open(tmp, "x") as f:
             json.dump(split, f, indent=1)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

@@ -6,7 +6,6 @@ plate and ``w`` pointing at the object.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +15,7 @@ from scipy import ndimage
 from f2f_jax.config import Config, GeometryConfig, voxel_centres
 from f2f_jax.errors import VolumeError
 from f2f_jax.geometry.tsdf import check_tsdf, marching_cubes_mesh
+from f2f_jax.fileio import atomic_path
 
 # Face-connected components only: voxels touching at an edge or a corner do not print as one part.
 _CONNECTIVITY = ndimage.generate_binary_structure(3, 1)
@@ -256,8 +256,6 @@ def export_finger_stl(finger_tsdf, path, cfg=None) -> Path:
     mesh = finger_with_mount(finger_tsdf, cfg)
     mesh.apply_scale(1000.0)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    mesh.export(tmp, file_type="stl")
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        mesh.export(tmp, file_type="stl")
     return path

@@ -25,8 +25,6 @@ costing work.
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import math
 import time
 import warnings

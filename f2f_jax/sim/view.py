@@ -12,9 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import os
 import sys
-from pathlib import Path
 
 import matplotlib
 
@@ -28,6 +26,7 @@ from scipy.spatial import ConvexHull  # noqa: E402
 from f2f_jax import config as config_mod  # noqa: E402
 from f2f_jax.config import TRIAL_NAMES, Config  # noqa: E402
 from f2f_jax.sim.protocol import GraspRunner, run_trials  # noqa: E402
+from f2f_jax.fileio import atomic_path  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -127,12 +126,9 @@ def render_trials(model: mujoco.MjModel, cfg: Config, path) -> np.ndarray:
     scores = "".join(str(int(v)) for v in result.outcome)
     fig.suptitle(f"outcome {scores[0]} {scores[1:5]} {scores[5:]}  ({result.steps} steps)")
     fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=80)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80, format="png")
     plt.close(fig)
-    os.replace(tmp, path)
     return result.outcome
 
 
