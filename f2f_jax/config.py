@@ -115,11 +115,28 @@ TRIAL_NAMES: tuple[str, ...] = (
 @dataclass(frozen=True)
 class NetConfig:
     latent_dim: int = 686  # paper
+    # Shape encoder: 3^3 VALID convolutions, stride 2 at the fifth (paper): 40 -> 32 -> 15 -> 7.
     encoder_channels: tuple[int, ...] = (8, 16, 32, 64, 64, 32, 16, 8, 4)
+    encoder_strides: tuple[int, ...] = (1, 1, 1, 1, 2, 1, 1, 1, 1)
+    # Initial log-variance of the encoder's posterior (bias of the logvar head): std ~0.05, small
+    # next to the [-1, 1] latent range, so a fresh VAE starts nearly deterministic.
+    encoder_logvar_init: float = -6.0
+    # Shape decoder: FCs, reshape to a cube of decoder_seed_size^3 x (decoder_fc[-1] / seed^3)
+    # channels (4096 = 64 x 4^3), then 3^3 VALID transposed convolutions (paper):
+    # 4 -> 6 -> 8 -> 24 (stride 3) -> 26 -> ... -> 40.
     decoder_fc: tuple[int, ...] = (1024, 2048, 4096)
+    decoder_seed_size: int = 4
+    decoder_channels: tuple[int, ...] = (64, 64, 32, 16, 8, 4, 2, 1, 1, 1, 1)
+    decoder_strides: tuple[int, ...] = (1, 1, 3, 1, 1, 1, 1, 1, 1, 1, 1)
     generator_fc: tuple[int, ...] = (2096, 4096)
+    # Fitness ResNet: one stride-2 conv per stage (the first 5^3, pad 2), then fitness_blocks
+    # residual blocks at that width; a last stride-2 conv at the last width: 120x40x40 -> 1x1x1.
     fitness_channels: tuple[int, ...] = (32, 64, 128, 256, 512, 1024)
+    fitness_blocks: tuple[int, ...] = (2, 2, 1, 1, 1, 1)
     fitness_fc: tuple[int, ...] = (512, 256, 128)
+    # BatchNorm running averages: PyTorch's momentum 0.1 (the original) is Flax's 0.9.
+    bn_momentum: float = 0.9
+    leaky_slope: float = 0.01  # PyTorch's LeakyReLU default, as in the original
 
 
 @dataclass(frozen=True)
@@ -166,7 +183,8 @@ def tiny() -> Config:
             hold_time=0.3, push_hold_time=0.5,
         ),
         net=NetConfig(
-            latent_dim=32, encoder_channels=(4, 8, 8, 8, 8, 8, 8, 4, 2), decoder_fc=(64, 128, 256),
+            latent_dim=32, encoder_channels=(4, 4, 4, 4, 8, 8, 8, 4, 2), decoder_fc=(64, 128, 256),
+            decoder_channels=(8, 8, 8, 4, 4, 4, 2, 1, 1, 1, 1),
             generator_fc=(64, 64), fitness_channels=(4, 8, 8, 16, 16, 16), fitness_fc=(32, 16, 16),
         ),
         train=dataclasses.replace(
