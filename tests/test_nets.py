@@ -27,9 +27,29 @@ from f2f_jax.train.losses import vae_loss
 R = 40
 
 
+def init_key(seed: int) -> jax.Array:
+    """An init key whose generator compiles fast on the CPU.
+
+    Flax draws every parameter from its own folded key; with the default threefry generator that
+    is one large hash circuit per parameter, and XLA's CPU compiler spends 10-15 s on a tiny net's
+    ``init``.  The 'rbg' generator compiles in 1-3 s.
+    """
+    return jax.random.key(seed, impl="rbg")
+
+
+def jit_init(module, seed, *args):
+    return jax.jit(lambda k: module.init(k, *args, train=False))(init_key(seed))
+
+
 @pytest.fixture(scope="module")
 def tiny_net():
     return config.tiny().net
+
+
+@pytest.fixture(scope="module")
+def ae_variables(tiny_net):
+    """Initialised tiny ShapeAutoEncoder variables, shared by the tests that need them."""
+    return jit_init(ShapeAutoEncoder(tiny_net), 5, jnp.zeros((2, R, R, R)))
 
 
 @pytest.fixture(scope="module")
@@ -127,7 +147,8 @@ def test_default_is_paper_size():
     rows = {row["name"]: row for row in summarize(config.default().net)}
     # paper: 686-d latent, generator FC(2096)-FC(4096)-FC(1372), fitness ends in 1024 features
     assert rows["ShapeEncoder"]["outputs"] == ((2, 686), (2, 686))
-    assert rows["Generator"]["params"] == 686 * 2096 + 2 * 2096 + 2096 * 4096 + 2 * 4096 + 4096 * 1372 + 1372
+    assert rows["Generator"]["params"] == (686 * 2096 + 2 * 2096 + 2096 * 4096 + 2 * 4096
+                                           + 4096 * 1372 + 1372)
     assert 100e6 < rows["FitnessNet"]["params"] < 150e6
 
 
@@ -135,7 +156,8 @@ def test_summary_cli_prints_counts(capsys, tiny_net):
     assert nets_cli.main(["--summary", "--config", "tiny"]) == 0
     out = capsys.readouterr().out
     rows = {row["name"]: row["params"] for row in summarize(tiny_net)}
-    for name in ("ShapeEncoder", "ShapeDecoder", "Generator", "FitnessNet", "FingerGenerator/embedding"):
+    names = ("ShapeEncoder", "ShapeDecoder", "Generator", "FitnessNet", "FingerGenerator/embedding")
+    for name in names:
         line = next(ln for ln in out.splitlines() if ln.startswith(name + " "))
         assert f"{rows[name]:,}" in line
     total = rows["ShapeEncoder"] + rows["ShapeDecoder"] + rows["Generator"] + rows["FitnessNet"]
@@ -145,100 +167,119 @@ def test_summary_cli_prints_counts(capsys, tiny_net):
 # ---------------------------------------------------------------- running the tiny nets
 
 
-def test_tiny_nets_jit_and_run(tiny_net, volumes):
+def _changed(new, old) -> bool:
+    return any(jax.tree.leaves(jax.tree.map(lambda a, b: bool(jnp.any(a != b)), new, old)))
+
+
+def test_generator_and_fitness_jit_and_run(tiny_net, volumes):
     lat = tiny_net.latent_dim
-    key = jax.random.key(1)
     cases = [
-        (ShapeEncoder(tiny_net), volumes),
-        (ShapeDecoder(tiny_net), jnp.tanh(jax.random.normal(key, (2, lat)))),
-        (Generator(tiny_net), jnp.tanh(jax.random.normal(key, (2, lat)))),
+        (Generator(tiny_net), jnp.tanh(jax.random.normal(jax.random.key(1), (2, lat)))),
         (FitnessNet(tiny_net), fitness_input(volumes, volumes, volumes)),
     ]
     for module, x in cases:
-        variables = module.init(key, x, train=False)
+        variables = jit_init(module, 0, x)
+        name = type(module).__name__
+        assert count_params(variables["params"]) == expected_counts(tiny_net)[name]
         train_fn = jax.jit(lambda v, x, m=module: m.apply(v, x, train=True, mutable=["batch_stats"]))
         eval_fn = jax.jit(lambda v, x, m=module: m.apply(v, x, train=False))
         out, updates = train_fn(variables, x)
-        for leaf in jax.tree.leaves(out) + jax.tree.leaves(eval_fn(variables, x)):
+        evaluated = eval_fn(variables, x)
+        for leaf in jax.tree.leaves(out) + jax.tree.leaves(evaluated):
             assert bool(jnp.all(jnp.isfinite(leaf))), type(module).__name__
-        # training mode moves the running statistics; evaluation mode reads them
-        moved = jax.tree.map(lambda a, b: bool(jnp.any(a != b)), updates["batch_stats"],
-                             variables["batch_stats"])
-        assert any(jax.tree.leaves(moved)), type(module).__name__
-    mu, logvar = ShapeEncoder(tiny_net).apply(
-        ShapeEncoder(tiny_net).init(key, volumes, train=False), volumes, train=False)
-    assert float(jnp.max(jnp.abs(mu))) < 1.0  # tanh: the paper's [-1, 1] latent
+        # training mode normalises with batch statistics and moves the running ones
+        assert _changed(updates["batch_stats"], variables["batch_stats"]), type(module).__name__
+        assert _changed(out, evaluated), type(module).__name__
+    assert out.shape == (2, 11)
 
 
-def test_autoencoder_sampling(tiny_net, volumes):
+def test_autoencoder_jit_train_and_eval(tiny_net, volumes, ae_variables):
+    """Encoder and decoder, compiled together, in both modes; the latent sample needs a key."""
     ae = ShapeAutoEncoder(tiny_net)
-    variables = ae.init(jax.random.key(0), volumes, train=False)
     with pytest.raises(ValueError, match="PRNG key"):
-        ae.apply(variables, volumes, train=True, mutable=["batch_stats"])
+        jax.eval_shape(lambda v, x: ae.apply(v, x, train=True, mutable=["batch_stats"]),
+                       ae_variables, volumes)
 
-    def run(key):
-        return ae.apply(variables, volumes, train=True, key=key, mutable=["batch_stats"])[0][0]
+    @jax.jit
+    def run(variables, x, keys):
+        train_out = [ae.apply(variables, x, train=True, key=k, mutable=["batch_stats"])
+                     for k in keys]
+        recon, mu, logvar = ae.apply(variables, x, train=False)
+        direct = ae.apply(variables, mu, train=False, method=ShapeAutoEncoder.decode)
+        return train_out, (recon, mu, logvar), direct
 
-    a, b, a2 = run(jax.random.key(1)), run(jax.random.key(2)), run(jax.random.key(1))
-    assert bool(jnp.all(a == a2)) and bool(jnp.any(a != b))
-    recon, mu, _ = ae.apply(variables, volumes, train=False)
-    direct = ae.apply(variables, mu, train=False, method=ShapeAutoEncoder.decode)
+    keys = [jax.random.key(1), jax.random.key(2), jax.random.key(1)]
+    train_out, (recon, mu, logvar), direct = run(ae_variables, volumes, keys)
+    (a, _, _), upd = train_out[0]
+    b, a2 = train_out[1][0][0], train_out[2][0][0]
+    lat = tiny_net.latent_dim
+    assert a.shape == recon.shape == (2, R, R, R)
+    assert mu.shape == logvar.shape == (2, lat)
+    assert float(jnp.max(jnp.abs(mu))) < 1.0  # tanh: the paper's [-1, 1] latent
+    assert float(jnp.max(jnp.abs(recon))) <= 1.0
+    assert bool(jnp.all(a == a2)) and bool(jnp.any(a != b))  # the key alone decides the sample
     np.testing.assert_allclose(recon, direct, atol=1e-6)  # evaluation decodes the mean
-    assert recon.shape == (2, R, R, R) and float(jnp.max(jnp.abs(recon))) <= 1.0
+    assert _changed(upd["batch_stats"], ae_variables["batch_stats"])
+    for leaf in jax.tree.leaves((train_out, recon, mu, logvar)):
+        assert bool(jnp.all(jnp.isfinite(leaf)))
 
 
 def test_wrong_volume_shapes_are_refused(tiny_net):
-    enc = ShapeEncoder(tiny_net)
+    key = jax.random.key(0)
     with pytest.raises(VolumeError, match=r"\[B, 40, 40, 40\]"):
-        enc.init(jax.random.key(0), jnp.zeros((40, 40, 40)), train=False)
+        jax.eval_shape(lambda x: ShapeEncoder(tiny_net).init(key, x, train=False),
+                       jnp.zeros((40, 40, 40)))
     with pytest.raises(VolumeError, match="FitnessNet"):
-        FitnessNet(tiny_net).init(jax.random.key(0), jnp.zeros((2, 40, 40, 40)), train=False)
+        jax.eval_shape(lambda x: FitnessNet(tiny_net).init(key, x, train=False),
+                       jnp.zeros((2, 40, 40, 40)))
     with pytest.raises(VolumeError, match="right finger"):
         fitness_input(jnp.zeros((40, 40, 40)), jnp.zeros((40, 40, 40)), jnp.zeros((40, 40)))
 
 
-def test_finger_generator_parts_are_separable_and_frozen(tiny_net, volumes):
+def test_finger_generator_parts_are_separable_and_frozen(tiny_net, volumes, ae_variables):
     fg = FingerGenerator(tiny_net)
-    variables = fg.init(jax.random.key(0), volumes, train=False)
-    assert set(variables["params"]) == {"encoder", "embedding", "decoder"}
+    shapes = jax.eval_shape(lambda k: fg.init(k, volumes, train=False), jax.random.key(0))
+    assert set(shapes["params"]) == {"encoder", "embedding", "decoder"}
+    # pretrained auto-encoder weights and a fresh embedding net fill it exactly
+    gen_vars = jit_init(Generator(tiny_net), 3, jnp.zeros((2, tiny_net.latent_dim)))
+    params = {**ae_variables["params"], "embedding": gen_vars["params"]}
+    stats = {**ae_variables["batch_stats"], "embedding": gen_vars["batch_stats"]}
+    assert (jax.tree.map(lambda a: a.shape, {"params": params, "batch_stats": stats})
+            == jax.tree.map(lambda a: a.shape, shapes))
 
-    # pretrained auto-encoder weights move over unchanged
-    ae = ShapeAutoEncoder(tiny_net)
-    ae_vars = ae.init(jax.random.key(5), volumes, train=False)
-    params = {**variables["params"], "encoder": ae_vars["params"]["encoder"],
-              "decoder": ae_vars["params"]["decoder"]}
-    stats = {**variables["batch_stats"], "encoder": ae_vars["batch_stats"]["encoder"],
-             "decoder": ae_vars["batch_stats"]["decoder"]}
-    mu_ae, _ = ae.apply(ae_vars, volumes, method=ShapeAutoEncoder.encode)
-    mu_fg = fg.apply({"params": params, "batch_stats": stats}, volumes,
-                     method=FingerGenerator.object_latent)
+    ae, dec = ShapeAutoEncoder(tiny_net), ShapeDecoder(tiny_net)
+
+    @jax.jit
+    def run(params, stats, x):
+        def loss(p):
+            (left, right), upd = fg.apply({"params": p, "batch_stats": stats}, x, train=True,
+                                          mutable=["batch_stats"])
+            return jnp.mean(left) - jnp.mean(right), upd
+
+        grads, upd = jax.grad(loss, has_aux=True)(params)
+        v = {"params": params, "batch_stats": stats}
+        mu_ae, _ = ae.apply(ae_variables, x, method=ShapeAutoEncoder.encode)
+        mu_fg = fg.apply(v, x, method=FingerGenerator.object_latent)
+        lz, rz = fg.apply(v, x, train=False, method=FingerGenerator.latents)
+        left, right = fg.apply(v, x, train=False)
+        dvars = {"params": params["decoder"], "batch_stats": stats["decoder"]}
+        decoded = dec.apply(dvars, jnp.concatenate([lz, rz]), train=False)
+        return grads, upd, mu_ae, mu_fg, (left, right), decoded
+
+    grads, upd, mu_ae, mu_fg, (left, right), decoded = run(params, stats, volumes)
     np.testing.assert_allclose(mu_ae, mu_fg, atol=1e-6)
-
-    def loss(p):
-        (left, right), upd = fg.apply({"params": p, "batch_stats": stats}, volumes, train=True,
-                                      mutable=["batch_stats"])
-        return jnp.mean(left) - jnp.mean(right), upd
-
-    grads, upd = jax.grad(loss, has_aux=True)(params)
-    norm = {k: sum(float(jnp.sum(jnp.square(g))) for g in jax.tree.leaves(v)) for k, v in grads.items()}
+    norm = {k: sum(float(jnp.sum(jnp.square(g))) for g in jax.tree.leaves(v))
+            for k, v in grads.items()}
     assert norm["encoder"] == 0.0  # cut from the graph: no backward pass through the encoder
     assert norm["embedding"] > 0.0 and norm["decoder"] > 0.0
     # only the embedding's BatchNorm statistics move in training mode
     for part in ("encoder", "decoder"):
-        same = jax.tree.map(lambda a, b: bool(jnp.all(a == b)), upd["batch_stats"][part], stats[part])
-        assert all(jax.tree.leaves(same)), part
-    moved = jax.tree.map(lambda a, b: bool(jnp.any(a != b)), upd["batch_stats"]["embedding"],
-                         stats["embedding"])
-    assert any(jax.tree.leaves(moved))
-
-    # latents decoded by the frozen decoder are the fingers
-    lz, rz = fg.apply({"params": params, "batch_stats": stats}, volumes, train=False,
-                      method=FingerGenerator.latents)
-    left, right = fg.apply({"params": params, "batch_stats": stats}, volumes, train=False)
-    dec = ShapeDecoder(tiny_net)
-    dvars = {"params": params["decoder"], "batch_stats": stats["decoder"]}
-    np.testing.assert_allclose(left, dec.apply(dvars, lz, train=False), atol=1e-5)
-    np.testing.assert_allclose(right, dec.apply(dvars, rz, train=False), atol=1e-5)
+        assert not _changed(upd["batch_stats"][part], stats[part]), part
+    assert _changed(upd["batch_stats"]["embedding"], stats["embedding"])
+    # the fingers are the frozen decoder's reading of the embedding's latents
+    np.testing.assert_allclose(left, decoded[:2], atol=1e-5)
+    np.testing.assert_allclose(right, decoded[2:], atol=1e-5)
+    assert left.shape == right.shape == (2, R, R, R)
 
 
 # ---------------------------------------------------------------- convolution paths
@@ -324,10 +365,10 @@ def test_fitness_input_imprint_fingers_face_the_object():
 # ---------------------------------------------------------------- learning
 
 
-def test_tiny_autoencoder_overfits_four_shapes(tiny_net):
+def test_tiny_autoencoder_overfits_four_shapes(tiny_net, ae_variables):
     shapes = jnp.asarray(_sphere_tsdfs(4, seed=0))
     ae = ShapeAutoEncoder(tiny_net)
-    variables = ae.init(jax.random.key(0), shapes, train=False)
+    variables = ae_variables
     opt = optax.adam(1e-2)
     state = (variables["params"], variables["batch_stats"], opt.init(variables["params"]))
 
@@ -344,7 +385,7 @@ def test_tiny_autoencoder_overfits_four_shapes(tiny_net):
         updates, opt_state = opt.update(grads, opt_state, params)
         return (optax.apply_updates(params, updates), stats, opt_state), loss
 
-    keys = jax.random.split(jax.random.key(1), 25)
+    keys = jax.random.split(jax.random.key(1), 16)
     losses = []
     for key in keys:
         state, loss = step(state, key)
