@@ -157,6 +157,13 @@ class TrainConfig:
     min_epochs: int = 5
     max_epochs: int = 50
     max_steps_per_epoch: int = 500
+    kl_weight: float = 0.0  # VAE KL weight; 0 is the original's plain reconstruction MSE
+    objectives: str = "full"  # generator objective: "GS", "GS+R", "GS+S" or "full" (Table 1)
+    # --- the run's data (experiments/cotrain.py) ---
+    n_objects: int = 1000  # built-in objects made when no --objects directory is given
+    test_fraction: float = 0.2  # held-out share of the objects (fixed split by name hash)
+    cut_pairs: int = 2  # pretraining pairs cut from other shapes, per object
+    eval_objects: int = 64  # held-out objects scored after cycle 0 and after the last cycle
 
 
 @dataclass(frozen=True)
@@ -170,8 +177,33 @@ class Config:
         return dataclasses.replace(self, **sections)
 
 
-def default() -> Config:
+def paper() -> Config:
+    """The paper's network sizes and training schedule: a GPU run."""
     return Config()
+
+
+def default() -> Config:
+    """The CPU-sized default of ``experiments/cotrain.py``: the paper's physics and protocol, narrow
+    strided nets and a short schedule that finish 20 cycles on a 2-core CPU in under 45 minutes."""
+    base = Config()
+    return base.replace(
+        net=NetConfig(
+            latent_dim=128,
+            # 40 -> 19 -> 9 -> 4 -> 2, all strided: 36 ms per batch of 16 (forward + gradients) on
+            # 2 cores against 625 ms for (8, 16, 16, 32, 32) at strides (2, 1, 2, 1, 1)
+            encoder_channels=(4, 8, 16, 32), encoder_strides=(2, 2, 2, 1),
+            # 4 -> 12 -> 36 -> 38 -> 40, few channels at full resolution (that is where time goes)
+            decoder_fc=(512, 1024), decoder_seed_size=4, decoder_channels=(8, 4, 2, 1),
+            decoder_strides=(3, 3, 1, 1),
+            generator_fc=(512, 512),
+            fitness_channels=(4, 8, 16, 32), fitness_blocks=(0, 1, 1, 1), fitness_fc=(128, 64),
+        ),
+        train=dataclasses.replace(
+            base.train, lr=1e-3, ae_epochs=40, ae_batch_size=32, fn_epochs=10, fn_batch_size=32,
+            gn_epochs=20, objects_per_cycle=32, cotrain_batch_size=32, min_epochs=2, max_epochs=6,
+            max_steps_per_epoch=8, n_objects=64, eval_objects=16, cut_pairs=1,
+        ),
+    )
 
 
 def tiny() -> Config:
@@ -183,19 +215,20 @@ def tiny() -> Config:
             hold_time=0.3, push_hold_time=0.5,
         ),
         net=NetConfig(
-            latent_dim=32, encoder_channels=(4, 4, 4, 4, 8, 8, 8, 4, 2), decoder_fc=(64, 128, 256),
-            decoder_channels=(8, 8, 8, 4, 4, 4, 2, 1, 1, 1, 1),
-            generator_fc=(64, 64), fitness_channels=(4, 8, 8, 16, 16, 16), fitness_fc=(32, 16, 16),
+            latent_dim=32, encoder_channels=(4, 8, 8, 16), encoder_strides=(2, 2, 2, 1),
+            decoder_fc=(64, 128), decoder_seed_size=4, decoder_channels=(4, 2, 1, 1),
+            decoder_strides=(3, 3, 1, 1), generator_fc=(64, 64), fitness_channels=(4, 8, 8, 16),
+            fitness_blocks=(0, 1, 0, 0), fitness_fc=(32, 16),
         ),
         train=dataclasses.replace(
-            base.train, ae_epochs=2, fn_epochs=2, gn_epochs=2, cycles=3, objects_per_cycle=16,
+            base.train, lr=1e-3, ae_epochs=2, fn_epochs=3, gn_epochs=2, cycles=3, objects_per_cycle=16,
             ae_batch_size=8, fn_batch_size=8, cotrain_batch_size=8, min_epochs=1, max_epochs=3,
-            max_steps_per_epoch=4,
+            max_steps_per_epoch=4, n_objects=16, eval_objects=4, cut_pairs=1,
         ),
     )
 
 
-CONFIGS = {"default": default, "tiny": tiny}
+CONFIGS = {"tiny": tiny, "default": default, "paper": paper}
 
 
 def get(name: str) -> Config:

@@ -121,13 +121,14 @@ def expected_counts(cfg) -> dict[str, int]:
         gen += _dense_bn(n, width)
         n = width
     gen += n * 2 * lat + 2 * lat
-    fit, c = 0, 1
+    fit, c, dims = 0, 1, np.array([3 * R, R, R])
     for stage, (width, blocks) in enumerate(zip(cfg.fitness_channels, cfg.fitness_blocks)):
         fit += _conv_bn(c, width, 5 if stage == 0 else 3)
         fit += blocks * 2 * _conv_bn(width, width)
-        c = width
+        c, dims = width, (dims - 1) // 2 + 1  # stride 2, "same" padding
     fit += _conv_bn(c, c)
-    n = c  # 1 x 1 x 1 x channels after seven stride-2 convolutions of 120 x 40 x 40
+    dims = (dims - 1) // 2 + 1
+    n = c * int(np.prod(dims))  # the paper's sizes: 1 x 1 x 1 x 1024 after seven convolutions
     for width in cfg.fitness_fc:
         fit += _dense_bn(n, width)
         n = width
@@ -135,7 +136,7 @@ def expected_counts(cfg) -> dict[str, int]:
     return {"ShapeEncoder": enc, "ShapeDecoder": dec, "Generator": gen, "FitnessNet": fit}
 
 
-@pytest.mark.parametrize("name", ["tiny", "default"])
+@pytest.mark.parametrize("name", ["tiny", "default", "paper"])
 def test_param_counts_match_layer_lists(name):
     cfg = config.get(name).net
     rows = {row["name"]: row["params"] for row in summarize(cfg)}
@@ -144,7 +145,7 @@ def test_param_counts_match_layer_lists(name):
 
 
 def test_default_is_paper_size():
-    rows = {row["name"]: row for row in summarize(config.default().net)}
+    rows = {row["name"]: row for row in summarize(config.paper().net)}
     # paper: 686-d latent, generator FC(2096)-FC(4096)-FC(1372), fitness ends in 1024 features
     assert rows["ShapeEncoder"]["outputs"] == ((2, 686), (2, 686))
     assert rows["Generator"]["params"] == (686 * 2096 + 2 * 2096 + 2096 * 4096 + 2 * 4096
