@@ -15,3 +15,7 @@ class VolumeError(F2FError, ValueError):
 
 class DecompositionError(F2FError, RuntimeError):
     """A shape that could not be cut into convex pieces."""
+
+
+class CheckpointError(F2FError, RuntimeError):
+    """No usable checkpoint, or one made for another configuration."""

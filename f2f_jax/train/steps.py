@@ -1,0 +1,235 @@
+"""Jitted training steps, one factory per stage.
+
+Every step is ``step(state, batch..., key) -> (state, metrics)``: a pure function compiled once per
+batch shape, with the incoming state donated (its buffers are reused for the new one) and no host
+synchronisation inside; callers fetch the metrics when they log.  Batches are sharded over the
+local devices along their first axis (``shard``), parameters replicated, so one call uses one CPU,
+one GPU or eight GPUs unchanged.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from f2f_jax.config import Config
+from f2f_jax.nets import FingerGenerator, FitnessNet, ShapeAutoEncoder, fitness_input
+from f2f_jax.train.losses import (
+    fitness_loss,
+    generator_loss,
+    imprint_latent_loss,
+    reconstruction_mse,
+    vae_loss,
+)
+from f2f_jax.train.state import TrainState, optimizer
+
+Step = Callable[..., tuple[TrainState, dict[str, jax.Array]]]
+
+
+# -- data parallelism ---------------------------------------------------------------------------
+@functools.lru_cache(maxsize=None)
+def _mesh() -> Mesh:
+    return Mesh(np.array(jax.local_devices()), ("data",))
+
+
+def shard(*arrays):
+    """Put host arrays on the local devices, split along axis 0 when it divides evenly.
+
+    With one device (a CPU, one GPU) this is a plain transfer.  Returns one array or a tuple.
+    """
+    mesh = _mesh()
+    n_dev = mesh.devices.size
+    out = []
+    for a in arrays:
+        a = np.asarray(a)
+        if n_dev > 1 and a.ndim and a.shape[0] % n_dev == 0:
+            spec = PartitionSpec("data")
+        else:
+            spec = PartitionSpec()
+        out.append(jax.device_put(a, NamedSharding(mesh, spec)))
+    return out[0] if len(out) == 1 else tuple(out)
+
+
+def _apply_grads(opt: optax.GradientTransformation, state: TrainState, grads, batch_stats) -> TrainState:
+    updates, opt_state = opt.update(grads, state.opt_state, state.params)
+    return state.replace(params=optax.apply_updates(state.params, updates), batch_stats=batch_stats,
+                         opt_state=opt_state, step=state.step + 1)
+
+
+def _merge_stats(old: Any, new: Any) -> Any:
+    """Replace the subtrees of ``old`` that ``new`` updated (frozen submodules keep theirs)."""
+    if not isinstance(new, dict):
+        return new
+    out = dict(old)
+    for k, v in new.items():
+        out[k] = _merge_stats(old.get(k, {}), v) if isinstance(v, dict) else v
+    return out
+
+
+# -- stage 1: shape auto-encoder -----------------------------------------------------------------
+@functools.lru_cache(maxsize=None)
+def ae_step(cfg: Config) -> Step:
+    """``step(state, volumes [B,40,40,40], key) -> (state, {"loss", "mse"})`` for the shape VAE."""
+    model = ShapeAutoEncoder(cfg.net)
+    opt = optimizer(cfg.train)
+    kl_weight = cfg.train.kl_weight
+
+    def loss_fn(params, batch_stats, x, key):
+        (recon, mu, logvar), upd = model.apply({"params": params, "batch_stats": batch_stats}, x,
+                                               train=True, key=key, mutable=["batch_stats"])
+        loss = vae_loss(recon, x, mu, logvar, kl_weight)
+        return loss, (upd["batch_stats"], reconstruction_mse(recon, x))
+
+    @functools.partial(jax.jit, donate_argnums=0)
+    def step(state: TrainState, x, key):
+        (loss, (stats, mse)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params, state.batch_stats, x, key)
+        return _apply_grads(opt, state, grads, stats), {"loss": loss, "mse": mse}
+
+    return step
+
+
+@functools.lru_cache(maxsize=None)
+def ae_reconstruct(cfg: Config) -> Callable:
+    """``f(variables, volumes) -> recon`` in evaluation mode (posterior mean, running stats)."""
+    model = ShapeAutoEncoder(cfg.net)
+
+    @jax.jit
+    def f(variables, x):
+        return model.apply(variables, x, train=False)[0]
+
+    return f
+
+
+@functools.lru_cache(maxsize=None)
+def encode_mean(cfg: Config) -> Callable:
+    """``f(encoder_variables, volumes [B,40,40,40]) -> mu [B, latent]`` (eval mode)."""
+    from f2f_jax.nets import ShapeEncoder
+
+    model = ShapeEncoder(cfg.net)
+
+    @jax.jit
+    def f(variables, x):
+        return model.apply(variables, x, train=False)[0]
+
+    return f
+
+
+# -- stage 2: fitness net ------------------------------------------------------------------------
+@functools.lru_cache(maxsize=None)
+def fn_step(cfg: Config) -> Step:
+    """``step(state, objects, lefts, rights, outcomes [B,11]) -> (state, {"loss"})`` (BCE)."""
+    model = FitnessNet(cfg.net)
+    opt = optimizer(cfg.train)
+
+    def loss_fn(params, batch_stats, obj, left, right, y):
+        logits, upd = model.apply({"params": params, "batch_stats": batch_stats},
+                                  fitness_input(obj, left, right), train=True, mutable=["batch_stats"])
+        return fitness_loss(logits, y), upd["batch_stats"]
+
+    @functools.partial(jax.jit, donate_argnums=0)
+    def step(state: TrainState, obj, left, right, y):
+        (loss, stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params, state.batch_stats, obj, left, right, y)
+        return _apply_grads(opt, state, grads, stats), {"loss": loss}
+
+    return step
+
+
+@functools.lru_cache(maxsize=None)
+def fn_eval(cfg: Config) -> Callable:
+    """``f(variables, objects, lefts, rights, outcomes) -> (bce, probabilities [B,11])`` (eval mode)."""
+    model = FitnessNet(cfg.net)
+
+    @jax.jit
+    def f(variables, obj, left, right, y):
+        logits = model.apply(variables, fitness_input(obj, left, right), train=False)
+        return fitness_loss(logits, y), jax.nn.sigmoid(logits)
+
+    return f
+
+
+# -- stage 3: generator, pretrained on imprint latents ------------------------------------------
+def generator_optimizer(cfg: Config) -> optax.GradientTransformation:
+    """Adam on the embedding net only: the pretrained encoder and decoder stay frozen (paper)."""
+    opt = optimizer(cfg.train)
+
+    def labels(params):
+        return {k: jax.tree.map(lambda _, k=k: "train" if k == "embedding" else "freeze", v)
+                for k, v in params.items()}
+
+    return optax.multi_transform({"train": opt, "freeze": optax.set_to_zero()}, labels)
+
+
+@functools.lru_cache(maxsize=None)
+def gn_imprint_step(cfg: Config) -> Step:
+    """``step(state, objects, imprint_lefts, imprint_rights) -> (state, {"loss"})``: MSE between
+    the embedding's finger latents and the frozen encoder's latents of the imprint fingers."""
+    model = FingerGenerator(cfg.net)
+
+    def encode(m, x):
+        return jax.lax.stop_gradient(m.encoder(x, train=False)[0])
+
+    def loss_fn(params, batch_stats, obj, left, right):
+        variables = {"params": params, "batch_stats": batch_stats}
+        (zl, zr), upd = model.apply(variables, obj, train=True, method=FingerGenerator.latents,
+                                    mutable=["batch_stats"])
+        tl = model.apply(variables, left, method=encode)
+        tr = model.apply(variables, right, method=encode)
+        loss = imprint_latent_loss(jnp.concatenate([zl, zr], 1), jnp.concatenate([tl, tr], 1))
+        return loss, upd["batch_stats"]
+
+    opt = generator_optimizer(cfg)
+
+    @functools.partial(jax.jit, donate_argnums=0)
+    def step(state: TrainState, obj, left, right):
+        (loss, stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params, state.batch_stats, obj, left, right)
+        return _apply_grads(opt, state, grads, _merge_stats(state.batch_stats, stats)), {"loss": loss}
+
+    return step
+
+
+# -- stage 4: generator against the fitness net ---------------------------------------------------
+@functools.lru_cache(maxsize=None)
+def gn_fitness_step(cfg: Config, objectives: str | None = None) -> Step:
+    """``step(state, fitness_variables, objects) -> (state, {"loss", "fitness" [11]})``;
+    loss = -mean sigmoid F over the selected outputs (``objectives``, default cfg.train's)."""
+    model = FingerGenerator(cfg.net)
+    fitness = FitnessNet(cfg.net)
+    objectives = objectives or cfg.train.objectives
+
+    def loss_fn(params, batch_stats, fit_vars, obj):
+        (left, right), upd = model.apply({"params": params, "batch_stats": batch_stats}, obj,
+                                         train=True, mutable=["batch_stats"])
+        logits = fitness.apply(fit_vars, fitness_input(obj, left, right), train=False)
+        return generator_loss(logits, objectives), (upd["batch_stats"], jax.nn.sigmoid(logits))
+
+    opt = generator_optimizer(cfg)
+
+    @functools.partial(jax.jit, donate_argnums=0)
+    def step(state: TrainState, fit_vars, obj):
+        (loss, (stats, prob)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params, state.batch_stats, fit_vars, obj)
+        new = _apply_grads(opt, state, grads, _merge_stats(state.batch_stats, stats))
+        return new, {"loss": loss, "fitness": jnp.mean(prob, 0)}
+
+    return step
+
+
+@functools.lru_cache(maxsize=None)
+def generate(cfg: Config) -> Callable:
+    """``f(generator_variables, objects) -> (lefts, rights)`` in evaluation mode."""
+    model = FingerGenerator(cfg.net)
+
+    @jax.jit
+    def f(variables, obj):
+        return model.apply(variables, obj, train=False)
+
+    return f

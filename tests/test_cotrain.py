@@ -1,0 +1,174 @@
+"""Co-training end to end (tiny config, 16 built-in objects): a run killed after cycle 2 and rerun
+ends with the parameters of a run never stopped; the fitness net learns; checkpoints that are
+corrupt are skipped; bad command lines fail cleanly without touching a run."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from f2f_jax import config
+from f2f_jax.errors import CheckpointError
+from f2f_jax.train.checkpoint import Checkpoints, config_from_dict, config_to_dict, load_models
+from f2f_jax.train.cotrain import CoTrainRun, NaNLossError, _check_finite
+
+ROOT = Path(__file__).resolve().parents[1]
+CYCLES = 3
+
+pytestmark = pytest.mark.slow
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, str(ROOT / "experiments" / "cotrain.py"), "--config", "tiny", "--quiet", *args]
+
+
+def _log(run_dir: Path) -> list[dict]:
+    path = run_dir / "log.jsonl"
+    if not path.exists():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            out.append(json.loads(line))
+        except json.JSONDecodeError:
+            pass
+    return out
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    """One tiny run of 3 cycles, never stopped, in this process."""
+    run_dir = tmp_path_factory.mktemp("cotrain") / "whole"
+    run = CoTrainRun(run_dir, config.tiny(), config_name="tiny", progress=False)
+    summary = run.run(CYCLES)
+    return run_dir, summary
+
+
+def test_killed_and_resumed_run_matches_uninterrupted(uninterrupted, tmp_path):
+    whole_dir, _ = uninterrupted
+    run_dir = tmp_path / "killed"
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = subprocess.Popen(_cli("--cycles", str(CYCLES), "--run-dir", str(run_dir)), env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 600
+        while not any(r.get("stage") == "cycle" and r.get("cycle") == 2 for r in _log(run_dir)):
+            if proc.poll() is not None:
+                pytest.fail(f"run ended before cycle 2: {proc.stderr.read().decode()[-2000:]}")
+            if time.monotonic() > deadline:
+                pytest.fail("cycle 2 not reached in 10 minutes")
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGKILL)  # no chance to clean up: like a power cut
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+        proc.stderr.close()
+    assert not (run_dir / "summary.json").exists()
+
+    # rerun the same command (in this process: the compiled steps are shared with the whole run)
+    summary = CoTrainRun(run_dir, config.tiny(), config_name="tiny", progress=False).run(CYCLES)
+    a, b = load_models(whole_dir), load_models(run_dir)
+    for part in ("generator", "fitness"):
+        leaves_a, leaves_b = jax.tree.leaves(getattr(a, part)), jax.tree.leaves(getattr(b, part))
+        assert len(leaves_a) == len(leaves_b)
+        for x, y in zip(leaves_a, leaves_b):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
+    # the simulated designs of every cycle were stored once, not twice
+    cycles = [r["cycle"] for r in _log(run_dir) if r.get("stage") == "cycle"]
+    assert sorted(set(cycles)) == [1, 2, 3]
+    from f2f_jax.data.store import GraspStore
+
+    rows = GraspStore(run_dir / "store").read(("cycle",))["cycle"]
+    assert [int((rows == c).sum()) for c in (1, 2, 3)] == [config.tiny().train.objects_per_cycle] * 3
+    assert summary["success"].keys() == _summary(whole_dir)["success"].keys()
+
+
+def _summary(run_dir: Path) -> dict:
+    return json.loads((run_dir / "summary.json").read_text())
+
+
+def test_fitness_net_learns_and_run_reports(uninterrupted):
+    run_dir, summary = uninterrupted
+    log = _log(run_dir)
+    bce = [r["heldout_bce"] for r in log if r.get("stage") == "fn" and "heldout_bce" in r
+           and r.get("cycle", 0) == 0]
+    assert len(bce) == config.tiny().train.fn_epochs + 1
+    assert bce[-1] < bce[0], bce  # held-out BCE after pretraining below the untrained net's
+    # the imprint baseline grasps the held-out objects, the flat WSG50 tips do not
+    assert summary["success"]["imprint"][0] > summary["success"]["wsg50"][0]
+    assert {"generator, cycle 0", f"generator, cycle {CYCLES}"} <= summary["success"].keys()
+    assert 0.0 <= summary["ae_heldout_iou"] <= 1.0
+    assert (run_dir / "curves.png").stat().st_size > 10_000
+    for r in log:
+        if "loss" in r:
+            assert np.isfinite(r["loss"])
+
+
+def test_corrupt_checkpoint_is_skipped(uninterrupted, tmp_path):
+    run_dir, _ = uninterrupted
+    copy = tmp_path / "copy"
+    shutil.copytree(run_dir / "checkpoints", copy / "checkpoints")
+    ckpt = Checkpoints(copy / "checkpoints")
+    newest = ckpt.steps()[-1]
+    # flip bytes in every array file of the newest checkpoint's models item
+    files = [p for p in (copy / "checkpoints" / str(newest) / "models").rglob("*") if p.is_file()
+             and p.stat().st_size > 64 and p.suffix not in (".json",) and "metadata" not in p.name]
+    assert files
+    for p in files:
+        data = bytearray(p.read_bytes())
+        for i in range(len(data) // 2, len(data) // 2 + 32):
+            data[i] ^= 0xFF
+        p.write_bytes(bytes(data))
+    with pytest.warns(UserWarning, match="corrupt"):
+        models = load_models(copy)
+    # the one before: the checkpoint after cycle CYCLES - 1
+    assert f"checkpoints/{newest - 1} " in models.source and f"cycle {CYCLES - 1})" in models.source
+
+
+def test_missing_checkpoint_names_the_command(tmp_path):
+    with pytest.raises(CheckpointError, match="experiments/cotrain.py"):
+        load_models(tmp_path / "nothing")
+
+
+def test_bad_command_lines_fail_cleanly(uninterrupted, tmp_path, capsys):
+    sys.path.insert(0, str(ROOT / "experiments"))
+    try:
+        import cotrain as cli
+    finally:
+        sys.path.pop(0)
+    assert cli.main(["--cycles", "0", "--run-dir", str(tmp_path / "a")]) == 2
+    assert "--cycles" in capsys.readouterr().err
+    assert cli.main(["--objects", str(tmp_path / "missing"), "--run-dir", str(tmp_path / "b")]) == 2
+    assert "no such directory" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert cli.main(["--objects", str(tmp_path / "empty"), "--run-dir", str(tmp_path / "c")]) == 2
+    assert "no mesh files" in capsys.readouterr().err
+    assert not any((tmp_path / d).exists() for d in "abc")
+    # a run directory made with another config is refused and left as it was
+    run_dir, _ = uninterrupted
+    before = {p: p.stat().st_mtime_ns for p in run_dir.rglob("*")}
+    assert cli.main(["--config", "default", "--cycles", "1", "--run-dir", str(run_dir), "--quiet"]) == 2
+    assert "another --run-dir" in capsys.readouterr().err
+    assert {p: p.stat().st_mtime_ns for p in run_dir.rglob("*")} == before
+
+
+def test_nan_loss_names_the_step():
+    with pytest.raises(NaNLossError, match="step 12"):
+        _check_finite(np.array([0.5, 0.4, np.nan]), "fn", 10)
+
+
+@pytest.mark.parametrize("name", sorted(config.CONFIGS))
+def test_config_round_trips_through_checkpoint_json(name):
+    cfg = config.get(name)
+    assert config_from_dict(json.loads(json.dumps(config_to_dict(cfg)))) == cfg
