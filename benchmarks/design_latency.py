@@ -1,0 +1,200 @@
+"""Latency of ``f2f_jax.design``: one object and a batch, 1 and 64 candidates, cold and warm.
+
+    python benchmarks/design_latency.py                      # default config, this machine
+    python benchmarks/design_latency.py --config paper --json design_latency.json
+
+Cold is the first call of a shape in this process (tracing and XLA compilation included); warm
+is the median of ``--repeats`` further calls (``--batch-repeats`` for the batch).  The warm
+calls are split into the generator (``propose``: encoder, embedding, latent noise, decoder), the
+host post-processing (largest component and feasibility of every finger, numpy) and the fitness
+net (``predict``).  No simulation: ``verify=True`` adds ``sim.evaluate`` of the feasible
+candidates (see ``benchmarks/sim_throughput.py``).
+
+Models: the newest checkpoint of ``--run-dir`` when its nets have the requested config's sizes,
+else randomly initialised nets of that config (latency does not depend on the weights; the
+output says which).  A batch whose estimated time (warm single-object time x B) exceeds
+``--budget-s``, or whose candidate volumes would not fit in the free host memory, is skipped
+with the estimate printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+import warnings
+
+import numpy as np
+
+
+def _available_bytes() -> int | None:
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _models(config_name: str, run_dir):
+    from f2f_jax import config
+    from f2f_jax.errors import CheckpointError
+    from f2f_jax.train.state import init_models
+
+    cfg = config.get(config_name)
+    try:
+        from f2f_jax.train.checkpoint import load_models
+
+        models = load_models(run_dir)
+        if models.config.net == cfg.net:
+            return models, f"checkpoint {models.source}"
+        note = f"the checkpoint in {run_dir or 'the default run dir'} has other net sizes"
+    except CheckpointError as exc:
+        note = f"no checkpoint ({str(exc).split(':')[0]})"
+    t = time.perf_counter()
+    models = init_models(cfg)
+    return models, f"random init, {note}; init took {time.perf_counter() - t:.1f} s"
+
+
+def _objects(n_distinct: int):
+    from f2f_jax.data import builtin_objects
+    from f2f_jax.geometry import mesh_to_tsdf
+
+    return np.stack([mesh_to_tsdf(m) for m in builtin_objects(n_distinct, seed=0)])
+
+
+class _StepTimer:
+    """Wraps design's step functions to time them inside design() calls."""
+
+    STEPS = ("propose", "postprocess", "predict")
+
+    def __init__(self, module):
+        self.module = module
+        self.originals = {s: getattr(module, s) for s in self.STEPS}
+        self.seconds = {s: [] for s in self.STEPS}
+
+    def __enter__(self):
+        for step, fn in self.originals.items():
+            def timed(*args, _fn=fn, _step=step, **kwargs):
+                t = time.perf_counter()
+                out = _fn(*args, **kwargs)
+                self.seconds[_step].append(time.perf_counter() - t)
+                return out
+
+            setattr(self.module, step, timed)
+        return self
+
+    def __exit__(self, *exc):
+        for step, fn in self.originals.items():
+            setattr(self.module, step, fn)
+
+    def medians(self) -> dict:
+        return {s: statistics.median(v) for s, v in self.seconds.items() if v}
+
+
+def _measure(design_module, models, objs, k: int, repeats: int) -> dict:
+    import jax
+
+    key = jax.random.key(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", design_module.InfeasibleDesignWarning)
+        t = time.perf_counter()
+        pairs = design_module.design(objs, params=models, candidates=k, key=key)
+        cold = time.perf_counter() - t
+        warm = []
+        with _StepTimer(design_module) as timer:
+            for _ in range(repeats):
+                t = time.perf_counter()
+                design_module.design(objs, params=models, candidates=k, key=key)
+                warm.append(time.perf_counter() - t)
+    n = len(objs) * k
+    feasible = np.mean([p.feasible for p in pairs])
+    med = statistics.median(warm)
+    return dict(objects=len(objs), candidates=k, cold_s=cold, warm_median_s=med,
+                warm_all_s=warm, per_candidate_ms=1e3 * med / n,
+                steps_warm_median_s=timer.medians(), feasible_fraction=float(feasible))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--config", default="default", choices=("tiny", "default", "paper"))
+    p.add_argument("--candidates", type=int, nargs="+", default=[1, 64])
+    p.add_argument("--batch", type=int, default=256, help="objects in the batch measurement")
+    p.add_argument("--repeats", type=int, default=5, help="warm calls for one object")
+    p.add_argument("--batch-repeats", type=int, default=2, help="warm calls for the batch")
+    p.add_argument("--distinct", type=int, default=16,
+                   help="distinct builtin objects, tiled to fill the batch")
+    p.add_argument("--budget-s", type=float, default=600.0,
+                   help="skip a batch measurement estimated to take longer than this per call")
+    p.add_argument("--run-dir", default=None)
+    p.add_argument("--json", default=None, help="write the results here")
+    args = p.parse_args(argv)
+
+    import jax
+
+    from f2f_jax import designer as design_module
+
+    dev = jax.devices()[0]
+    device = f"{dev.platform} ({dev.device_kind}), {jax.device_count()} device(s)"
+    models, source = _models(args.config, args.run_dir)
+    distinct = _objects(min(args.distinct, args.batch))
+    batch = distinct[np.arange(args.batch) % len(distinct)]
+    print(f"design() latency: config {args.config}, device {device}, jax {jax.__version__}")
+    print(f"models: {source}")
+    print(f"objects: {len(distinct)} builtin objects (the batch tiles them to {args.batch}); "
+          f"no simulation (verify=False); chunk {design_module.CHUNK} candidates per vmap")
+    print()
+    header = (f"{'B':>4} {'K':>4} {'cold s':>9} {'warm s':>9} {'ms/cand':>9} "
+              f"{'propose':>8} {'post':>8} {'predict':>8} {'feasible':>8}")
+    print(header)
+    sys.stdout.flush()
+    rows = []
+
+    def show(r):
+        s = r["steps_warm_median_s"]
+        print(f"{r['objects']:>4} {r['candidates']:>4} {r['cold_s']:>9.3f} {r['warm_median_s']:>9.3f} "
+              f"{r['per_candidate_ms']:>9.2f} {s.get('propose', 0):>8.3f} "
+              f"{s.get('postprocess', 0):>8.3f} {s.get('predict', 0):>8.3f} "
+              f"{r['feasible_fraction']:>8.2f}")
+        sys.stdout.flush()
+
+    single = {}
+    for k in args.candidates:
+        r = _measure(design_module, models, distinct[:1], k, args.repeats)
+        single[k] = r
+        rows.append(r)
+        show(r)
+    for k in args.candidates:
+        n = args.batch * k
+        est_s = single[k]["warm_median_s"] * args.batch
+        # lefts and rights: the device output, its host copy, the fitness net's device input
+        need = 3 * n * 2 * 40 ** 3 * 4
+        free = _available_bytes()
+        if est_s > args.budget_s or (free is not None and need > 0.8 * free):
+            why = (f"estimated {est_s:.0f} s per call (> --budget-s {args.budget_s:.0f})"
+                   if est_s > args.budget_s else
+                   f"needs ~{need / 2**30:.1f} GiB of host memory, {free / 2**30:.1f} GiB free")
+            print(f"{args.batch:>4} {k:>4}   skipped: {why}")
+            rows.append(dict(objects=args.batch, candidates=k, skipped=why, estimated_s=est_s))
+            continue
+        r = _measure(design_module, models, batch, k, args.batch_repeats)
+        rows.append(r)
+        show(r)
+
+    if args.json:
+        result = dict(config=args.config, device=device, jax=jax.__version__, models=source,
+                      chunk=design_module.CHUNK, rows=rows)
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
+    sys.exit(main())

@@ -1,0 +1,154 @@
+"""Command-line tools.
+
+``f2f-design MESH --out DIR``: design a finger pair for one mesh with a trained run and write
+
+    DIR/left.stl, DIR/right.stl   fingers with their mount plates, watertight, millimetres
+    DIR/design.png                the object held by the fingers, three views, outcome boxes
+    DIR/scores.json               predicted (and simulated) outcome per trial name, feasibility,
+                                  the checkpoint and the input file
+
+Everything is written into a hidden sibling directory first and renamed to DIR at the end, so a
+failure leaves nothing behind.  Errors (missing or unreadable mesh, no checkpoint, a volume that
+cannot be designed for) print one line to stderr and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import uuid
+import warnings
+from pathlib import Path
+
+EXIT_ERROR = 2
+
+
+def _design_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="f2f-design",
+        description="Design a pair of parallel-jaw gripper fingers for an object mesh with a "
+                    "trained f2f_jax run; writes left.stl, right.stl, design.png and scores.json.")
+    p.add_argument("mesh", type=Path, help="object mesh (.obj, .stl, .ply, .glb, .gltf, .off); any "
+                   "units: it is stretched per axis to fill the 6 cm design cube")
+    p.add_argument("--out", type=Path, required=True, help="output directory (must not exist or be "
+                   "empty, unless --force)")
+    p.add_argument("--run-dir", type=Path, default=None, help="co-training run whose newest "
+                   "checkpoint designs (default: $F2F_RUN_DIR or runs/cotrain)")
+    p.add_argument("--candidates", type=int, default=8, help="designs sampled (latent noise) and "
+                   "ranked; default 8")
+    p.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
+                   help="simulate the feasible candidates and rank by simulated outcome (default on)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the candidates' latent noise")
+    p.add_argument("--backend", choices=("mujoco", "mjx"), default="mujoco",
+                   help="simulator for --verify (default mujoco, on CPU threads)")
+    p.add_argument("--force", action="store_true", help="replace a non-empty --out directory")
+    return p
+
+
+def _load_models(run_dir):
+    from f2f_jax import designer as design_module
+
+    return design_module._load_models(run_dir)
+
+
+def _fail(message: str) -> int:
+    print(f"f2f-design: error: {message}", file=sys.stderr)
+    return EXIT_ERROR
+
+
+def design_main(argv: list[str] | None = None) -> int:
+    """Entry point of ``f2f-design``; returns the exit status (0 ok, 2 error)."""
+    parser = _design_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, or a usage error already printed by argparse
+        return int(exc.code or 0)
+    if args.candidates < 1:
+        return _fail(f"--candidates must be >= 1, got {args.candidates}")
+    out: Path = args.out
+    if out.exists() and not out.is_dir():
+        return _fail(f"--out {out} exists and is not a directory")
+    if out.is_dir() and any(out.iterdir()) and not args.force:
+        return _fail(f"--out {out} exists and is not empty; choose another directory or pass --force")
+
+    # Heavy imports after the cheap checks: a typo in a path fails in a blink.
+    from f2f_jax.errors import F2FError
+
+    try:
+        return _run_design(args)
+    except FileNotFoundError as exc:
+        return _fail(str(exc))
+    except F2FError as exc:  # MeshError, VolumeError, CheckpointError, ...
+        return _fail(str(exc))
+    except OSError as exc:  # writing the outputs
+        return _fail(f"{type(exc).__name__}: {exc}")
+
+
+def _run_design(args) -> int:
+    from f2f_jax.data.sources import load_mesh
+
+    mesh = load_mesh(args.mesh)
+    models = _load_models(args.run_dir)
+
+    import jax
+
+    from f2f_jax import designer as design_module
+    from f2f_jax.config import TRIAL_NAMES
+    from f2f_jax.geometry import mesh_to_tsdf
+
+    obj = mesh_to_tsdf(mesh, models.config.geometry, name=str(args.mesh))
+    with warnings.catch_warnings():
+        # the one-line error below says it; the warning would repeat it
+        warnings.simplefilter("ignore", design_module.InfeasibleDesignWarning)
+        pair = design_module.design(obj, params=models, key=jax.random.key(args.seed),
+                                    candidates=args.candidates, verify=args.verify,
+                                    backend=args.backend)
+    if not pair.feasible:
+        return _fail(f"no feasible finger pair among {args.candidates} candidates for {args.mesh} "
+                     f"(best predicted mean {pair.predicted_mean:.2f}); try more --candidates or "
+                     "a better-trained --run-dir")
+
+    out: Path = args.out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        pair.export_stl(tmp)
+        pair.render(tmp / "design.png", title=f"{Path(args.mesh).name}: {pair._headline()}")
+        scores = pair.scores()
+        scores.pop("source")  # recorded as "checkpoint"
+        scores = dict(input=str(Path(args.mesh).resolve()), checkpoint=models.source,
+                      trial_names=list(TRIAL_NAMES), verified=bool(args.verify),
+                      backend=args.backend if args.verify else None, seed=args.seed,
+                      units="stl in millimetres, mount plate at z <= 0", **scores)
+        (tmp / "scores.json").write_text(json.dumps(scores, indent=2) + "\n")
+        _replace_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    print(pair)
+    print(f"wrote {out}/left.stl, right.stl, design.png, scores.json")
+    return 0
+
+
+def _replace_dir(tmp: Path, out: Path) -> None:
+    """Rename the finished ``tmp`` onto ``out``; an existing ``out`` (checked empty, or --force)
+    is moved aside first and removed only after the new one is in place."""
+    if not out.exists():
+        os.rename(tmp, out)
+        return
+    old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
+    os.rename(out, old)
+    try:
+        os.rename(tmp, out)
+    except BaseException:
+        os.rename(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    sys.exit(design_main())

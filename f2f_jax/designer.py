@@ -1,0 +1,372 @@
+"""Design fingers for an object: the public face of a trained run.
+
+    pair = f2f_jax.design(obj_tsdf)                       # newest checkpoint of runs/cotrain
+    pair = f2f_jax.design(obj_tsdf, candidates=16, verify=True)
+    pair.export_stl("out/"); pair.render("out/design.png"); print(pair)
+
+How a design is chosen, per object:
+
+1. The generator maps the object to two finger latents; candidate 0 decodes them as they are, the
+   other ``candidates - 1`` add Gaussian noise (standard deviation ``noise``, default
+   ``LATENT_NOISE`` = 0.2, i.e. 0.1 of the latents' [-1, 1] range, clipped back into it) to each
+   finger latent before the frozen decoder.  All objects and all candidates go through the
+   generator in one jitted call.
+2. Each finger keeps its largest face-connected component and is checked for feasibility
+   (``geometry.largest_component``, ``geometry.is_feasible``), as in co-training.
+3. The fitness net predicts the 11 outcome probabilities of every candidate (one jitted call).
+4. With ``verify=True`` the feasible candidates of all objects are simulated in one
+   ``sim.evaluate`` call.
+5. Ranking: feasible first, then the simulated outcome (number of the 11 trials passed, when
+   verified), then the mean predicted probability, then the candidate index (the generator's own
+   output wins full ties).  When no candidate is feasible the best-predicted one is returned with
+   ``feasible=False`` and an ``InfeasibleDesignWarning``.
+
+Inside the jitted calls the candidates run in chunks of ``CHUNK`` (``lax.map``), so memory stays
+bounded for large batches (256 objects x 64 candidates) while the call stays one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from f2f_jax.config import TRIAL_NAMES, GeometryConfig, NetConfig
+from f2f_jax.errors import F2FError, VolumeError
+from f2f_jax.geometry import check_tsdf, export_finger_stl, is_feasible, largest_component
+from f2f_jax.nets import RESOLUTION, FingerGenerator, FitnessNet, fitness_input
+from f2f_jax.train.state import Models
+
+# Standard deviation of the Gaussian added to each finger-latent coordinate of candidates
+# 1..K-1: 0.1 of the latent range [-1, 1] (the generator's tanh output, the encoder's means).
+LATENT_NOISE = 0.2
+# Candidates (or objects) per vectorised chunk inside one jitted call: bounds activation memory
+# (default config: ~1 GB per 256 fitness triples on a CPU) without a Python loop.
+CHUNK = 256
+BACKENDS = ("mujoco", "mjx")
+
+
+class InfeasibleDesignWarning(UserWarning):
+    """No candidate of an object was printable; the best-predicted infeasible one was returned."""
+
+
+@dataclasses.dataclass(frozen=True, eq=False, repr=False)
+class FingerPair:
+    """One designed finger pair and its scores.
+
+    left, right: [40, 40, 40] float32 finger TSDFs (finger frame of config.py, mount at w = 0).
+    predicted: [11] float32 fitness-net probabilities in ``TRIAL_NAMES`` order.
+    simulated: [11] uint8 simulated outcomes, or None when not verified.
+    feasible: both fingers printable and mountable (``geometry.is_feasible``).
+    object: [40, 40, 40] float32, the input object volume.
+    candidate: which of the ``n_candidates`` it was (0: the generator's own output);
+    n_feasible: how many candidates were feasible; source: the models' checkpoint.
+    """
+
+    left: np.ndarray
+    right: np.ndarray
+    predicted: np.ndarray
+    simulated: np.ndarray | None
+    feasible: bool
+    object: np.ndarray
+    candidate: int = 0
+    n_candidates: int = 1
+    n_feasible: int = 0
+    source: str = ""
+    geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
+
+    @property
+    def predicted_mean(self) -> float:
+        """Mean predicted success probability over the 11 outcomes."""
+        return float(np.mean(self.predicted))
+
+    def export_stl(self, directory) -> tuple[Path, Path]:
+        """Write ``left.stl`` and ``right.stl`` (finger plus mount plate, watertight, millimetres)
+        into ``directory`` (created if missing).  Returns (left_path, right_path).
+
+        Raises VolumeError for an infeasible pair: it cannot be printed and mounted.
+        """
+        if not self.feasible:
+            raise VolumeError("this finger pair is not feasible (no candidate was); refusing to "
+                              "export it: try more candidates or a trained checkpoint")
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        left = export_finger_stl(self.left, directory / "left.stl", self.geometry)
+        right = export_finger_stl(self.right, directory / "right.stl", self.geometry)
+        return left, right
+
+    def render(self, path, *, title: str | None = None, dpi: int = 90) -> Path:
+        """PNG of the object held by the two fingers (three views) with the outcome boxes: the
+        simulated outcomes when verified, else the predicted probabilities."""
+        from f2f_jax.render import render_grasp
+
+        if title is None:
+            title = self._headline()
+        scores = self.simulated if self.simulated is not None else self.predicted
+        return render_grasp(path, self.object, self.left, self.right, title=title, scores=scores,
+                            cfg=self.geometry, dpi=dpi)
+
+    def scores(self) -> dict:
+        """JSON-ready scores: predicted (and simulated) per outcome name, feasibility, provenance."""
+        return dict(
+            feasible=bool(self.feasible),
+            predicted={n: round(float(p), 6) for n, p in zip(TRIAL_NAMES, self.predicted)},
+            predicted_mean=round(self.predicted_mean, 6),
+            simulated=(None if self.simulated is None else
+                       {n: int(s) for n, s in zip(TRIAL_NAMES, self.simulated)}),
+            simulated_passed=None if self.simulated is None else int(np.sum(self.simulated)),
+            candidate=int(self.candidate), n_candidates=int(self.n_candidates),
+            n_feasible=int(self.n_feasible), source=self.source,
+        )
+
+    def _headline(self) -> str:
+        state = "feasible" if self.feasible else "NOT feasible"
+        text = (f"{state}, candidate {self.candidate} of {self.n_candidates} "
+                f"({self.n_feasible} feasible), predicted mean {self.predicted_mean:.2f}")
+        if self.simulated is not None:
+            text += f", simulated {int(np.sum(self.simulated))}/{len(self.simulated)}"
+        return text
+
+    def __str__(self) -> str:
+        lines = [f"FingerPair: {self._headline()}"]
+        if self.source:
+            lines.append(f"  models: {self.source}")
+        lines.append(f"  {'outcome':<8}{'predicted':>10}{'simulated':>10}")
+        for i, name in enumerate(TRIAL_NAMES):
+            sim = "-" if self.simulated is None else str(int(self.simulated[i]))
+            lines.append(f"  {name:<8}{self.predicted[i]:>10.3f}{sim:>10}")
+        sim = "-" if self.simulated is None else f"{int(np.sum(self.simulated))}/{len(self.simulated)}"
+        lines.append(f"  {'mean':<8}{self.predicted_mean:>10.3f}{sim:>10}")
+        return "\n".join(lines)
+
+    __repr__ = __str__
+
+
+def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int = 1,
+           verify: bool = False, backend: str = "mujoco", run_dir=None,
+           noise: float = LATENT_NOISE):
+    """Design a finger pair for each object.
+
+    obj_tsdf: [40, 40, 40] float32 object TSDF (negative inside) -> FingerPair, or a batch
+        [B, 40, 40, 40] -> list of B FingerPairs.
+    params: trained Models; None loads the newest checkpoint of ``run_dir`` (default
+        ``$F2F_RUN_DIR`` or ``runs/cotrain``) with ``train.checkpoint.load_models``.
+    key: jax PRNG key (or an int seed) for the latent noise of candidates 1..K-1; default key(0).
+    candidates: K >= 1 designs sampled per object (see the module docstring for the ranking).
+    verify: simulate the feasible candidates (one ``sim.evaluate`` call with ``backend``) and rank
+        by simulated outcome first.
+    noise: standard deviation of the latent noise (latent units; the latents span [-1, 1]).
+
+    Raises VolumeError for a wrong shape, NaN/inf values or an empty or all-inside volume (naming
+    the batch index), ValueError for bad options, CheckpointError (an F2FError) when params is
+    None and no checkpoint can be loaded.  Warns InfeasibleDesignWarning for every object whose
+    candidates are all infeasible.
+    """
+    objects, single = _as_objects(obj_tsdf)
+    if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 1:
+        raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
+    candidates = int(candidates)
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    if not np.isfinite(noise) or noise < 0:
+        raise ValueError(f"noise must be a finite standard deviation >= 0, got {noise!r}")
+    models = _load_models(run_dir) if params is None else params
+    if not isinstance(models, Models):
+        raise TypeError(f"params must be f2f_jax.train.state.Models (or None to load a "
+                        f"checkpoint), got {type(models).__name__}")
+    key = _as_key(key)
+    g = models.config.geometry
+
+    lefts, rights = propose(models, objects, key, candidates, noise)
+    feasible = postprocess(lefts, rights, g)
+    predicted = predict(models, objects, lefts, rights)
+    if not np.all(np.isfinite(predicted)):
+        raise F2FError(f"the fitness net of {models.source or 'these models'} predicted NaN/inf; "
+                       "the checkpoint is broken")
+    simulated = _simulate(models, objects, lefts, rights, feasible, backend) if verify else None
+    best = rank_candidates(feasible, predicted, simulated)[:, 0]
+
+    hopeless = np.nonzero(~feasible.any(axis=1))[0]
+    if len(hopeless):
+        which = "the object" if single else f"objects {hopeless.tolist()}"
+        warnings.warn(f"design: none of the {candidates} candidates for {which} is feasible; "
+                      "returning the best-predicted one with feasible=False (try more candidates "
+                      "or a better-trained checkpoint)", InfeasibleDesignWarning, stacklevel=2)
+
+    pairs = []
+    for b, k in enumerate(best):
+        pairs.append(FingerPair(
+            left=lefts[b, k].copy(), right=rights[b, k].copy(),
+            predicted=predicted[b, k].astype(np.float32),
+            simulated=None if simulated is None else simulated[b, k].copy(),
+            feasible=bool(feasible[b, k]), object=objects[b].copy(), candidate=int(k),
+            n_candidates=candidates, n_feasible=int(feasible[b].sum()), source=models.source,
+            geometry=g))
+    return pairs[0] if single else pairs
+
+
+# --------------------------------------------------------------------------------------------
+# steps (module-level so that tests and benchmarks can time or replace each one)
+
+
+def propose(models: Models, objects: np.ndarray, key, candidates: int,
+            noise: float = LATENT_NOISE) -> tuple[np.ndarray, np.ndarray]:
+    """Raw generated candidates, before post-processing.
+
+    objects: [B, 40, 40, 40] float32.  Returns lefts, rights: [B, K, 40, 40, 40] float32 host
+    arrays (writable); candidate 0 is the generator's own output.
+    """
+    lefts, rights = _propose_jit(models.config.net, models.generator, jnp.asarray(objects),
+                                 _as_key(key), jnp.float32(noise), candidates=int(candidates),
+                                 chunk=CHUNK)
+    return np.array(lefts), np.array(rights)
+
+
+def postprocess(lefts: np.ndarray, rights: np.ndarray,
+                geometry: GeometryConfig | None = None) -> np.ndarray:
+    """Keep each finger's largest component, in place; return feasible [B, K] (both fingers)."""
+    b, k = lefts.shape[:2]
+    feasible = np.zeros((b, k), bool)
+    for i in range(b):
+        for j in range(k):
+            lefts[i, j] = largest_component(lefts[i, j])
+            rights[i, j] = largest_component(rights[i, j])
+            feasible[i, j] = is_feasible(lefts[i, j], geometry) and is_feasible(rights[i, j], geometry)
+    return feasible
+
+
+def predict(models: Models, objects: np.ndarray, lefts: np.ndarray, rights: np.ndarray) -> np.ndarray:
+    """Fitness-net probabilities of every candidate: [B, K, 11] float32 (one jitted call)."""
+    p = _fitness_jit(models.config.net, models.fitness, jnp.asarray(objects), jnp.asarray(lefts),
+                     jnp.asarray(rights), chunk=CHUNK)
+    return np.asarray(p, np.float32)
+
+
+def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
+                    simulated: np.ndarray | None = None) -> np.ndarray:
+    """Candidate order per object, best first.
+
+    feasible: [B, K] bool; predicted: [B, K, 11] probabilities; simulated: [B, K, 11] 0/1 or None.
+    Keys, most important first: feasible, simulated trials passed (when given), mean predicted
+    probability, lower candidate index.  Returns [B, K] int indices.
+    """
+    feasible = np.asarray(feasible, bool)
+    b, k = feasible.shape
+    pred = np.asarray(predicted, np.float64).mean(axis=-1)
+    sim = (np.zeros((b, k)) if simulated is None
+           else np.asarray(simulated, np.float64).sum(axis=-1))
+    index = np.broadcast_to(np.arange(k), (b, k))
+    # np.lexsort sorts ascending by the last key first
+    return np.lexsort((index, -pred, -sim, ~feasible), axis=-1)
+
+
+# --------------------------------------------------------------------------------------------
+# helpers
+
+
+def _load_models(run_dir) -> Models:
+    """Models of the newest checkpoint (lazy import: design with params= never touches orbax)."""
+    from f2f_jax.train.checkpoint import load_models
+
+    return load_models(run_dir)
+
+
+def _as_key(key):
+    if key is None:
+        return jax.random.key(0)
+    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
+        return jax.random.key(int(key))
+    return key
+
+
+def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
+    """Validate the input: -> ([B, R, R, R] float32, single)."""
+    r = RESOLUTION
+    try:
+        arr = np.asarray(obj_tsdf)
+    except Exception as exc:  # ragged lists and the like
+        raise VolumeError(f"obj_tsdf: cannot read as an array ({type(exc).__name__}: {exc})") from None
+    g = GeometryConfig()
+    if arr.ndim == 3:
+        return check_tsdf(arr, "obj_tsdf", g)[None].copy(), True
+    if arr.ndim == 4:
+        if arr.shape[0] == 0:
+            raise VolumeError("obj_tsdf: empty batch (shape [0, ...])")
+        return np.stack([check_tsdf(a, f"obj_tsdf[{i}]", g) for i, a in enumerate(arr)]), False
+    raise VolumeError(f"obj_tsdf: expected one volume [{r}, {r}, {r}] or a batch [B, {r}, {r}, {r}], "
+                      f"got shape {arr.shape}")
+
+
+def _simulate(models, objects, lefts, rights, feasible, backend) -> np.ndarray:
+    """Simulated outcomes [B, K, 11] uint8: the feasible candidates in one evaluate call, zeros
+    for the rest (an infeasible finger scores all 0 by the protocol)."""
+    from f2f_jax.sim import evaluate
+
+    b, k = feasible.shape
+    out = np.zeros((b, k, len(TRIAL_NAMES)), np.uint8)
+    ib, ik = np.nonzero(feasible)
+    if len(ib):
+        out[ib, ik] = evaluate(objects[ib], lefts[ib, ik], rights[ib, ik], backend=backend,
+                               cfg=models.config)
+    return out
+
+
+def _chunked_map(f, xs, chunk: int):
+    """``vmap(f)(xs)`` over the leading axis, ``chunk`` rows at a time when there are more (a
+    ``lax.map`` scan: bounded memory, one compiled body).  Small inputs skip the scan, which
+    would otherwise be compiled alongside the remainder."""
+    n = jax.tree.leaves(xs)[0].shape[0]
+    if n <= chunk:
+        return jax.vmap(f)(xs)
+    return jax.lax.map(f, xs, batch_size=chunk)
+
+
+def _decode(module: FingerGenerator, latent: jax.Array) -> jax.Array:
+    return module.decoder(latent, train=False)
+
+
+@functools.partial(jax.jit, static_argnames=("net_cfg", "candidates", "chunk"))
+def _propose_jit(net_cfg: NetConfig, variables, objects, key, noise, *, candidates: int, chunk: int):
+    """objects [B, R, R, R] -> lefts, rights [B, K, R, R, R]; latent noise on candidates 1..K-1."""
+    gen = FingerGenerator(net_cfg)
+    r = RESOLUTION
+
+    def latents(obj):  # [R, R, R] -> [2, D]
+        left, right = gen.apply(variables, obj[None], train=False, method=FingerGenerator.latents)
+        return jnp.concatenate([left, right], axis=0)
+
+    z = _chunked_map(latents, objects, chunk)  # [B, 2, D]
+    b, _, d = z.shape
+    eps = noise * jax.random.normal(key, (b, candidates, 2, d), jnp.float32)
+    eps = eps.at[:, 0].set(0.0)
+    z = jnp.clip(z[:, None] + eps, -1.0, 1.0)  # the decoder saw latents in [-1, 1] only
+
+    def decode(latent):  # [D] -> [R, R, R]
+        return gen.apply(variables, latent[None], method=_decode)[0]
+
+    fingers = _chunked_map(decode, z.reshape(-1, d), chunk)
+    fingers = fingers.reshape(b, candidates, 2, r, r, r)
+    return fingers[:, :, 0], fingers[:, :, 1]
+
+
+@functools.partial(jax.jit, static_argnames=("net_cfg", "chunk"))
+def _fitness_jit(net_cfg: NetConfig, variables, objects, lefts, rights, *, chunk: int):
+    """objects [B, R, R, R], lefts/rights [B, K, R, R, R] -> probabilities [B, K, 11]."""
+    b, k = lefts.shape[:2]
+    r = RESOLUTION
+    owner = jnp.repeat(jnp.arange(b), k)  # candidates share their object's volume, not a copy
+    net = FitnessNet(net_cfg)
+
+    def one(args):
+        i, left, right = args
+        x = fitness_input(objects[i][None], left[None], right[None])
+        return jax.nn.sigmoid(net.apply(variables, x, train=False))[0]
+
+    p = _chunked_map(one, (owner, lefts.reshape(b * k, r, r, r), rights.reshape(b * k, r, r, r)),
+                     chunk)
+    return p.reshape(b, k, -1)

@@ -1,0 +1,305 @@
+"""f2f_jax.design, FingerPair and the f2f-design CLI (tiny config, randomly initialised nets).
+
+Random nets make noisy, nearly tied designs; the ranking and filtering tests therefore replace the
+generator's raw output (``design.propose``) and, where the ranking itself is under test, the
+fitness net (``design.predict``) with constructed cases whose right answer is known.
+"""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import trimesh
+
+import f2f_jax
+from f2f_jax import config
+from f2f_jax import designer as design_module
+from f2f_jax.cli import design_main
+from f2f_jax.config import TRIAL_NAMES
+from f2f_jax.errors import F2FError, VolumeError
+from f2f_jax.geometry import (
+    imprint_fingers,
+    is_feasible,
+    largest_component,
+    mesh_to_tsdf,
+    wsg50_fingers,
+)
+from f2f_jax.train.state import init_models
+
+R = 40
+
+
+@pytest.fixture(scope="module")
+def models():
+    return init_models(config.get("tiny"))
+
+
+@pytest.fixture(scope="module")
+def box_tsdf():
+    return mesh_to_tsdf(trimesh.creation.box((0.04, 0.03, 0.05)))
+
+
+def _floating_block(w_from=10):
+    """Solid everywhere from plane w_from on: never touches the mount plane (infeasible)."""
+    f = np.ones((R, R, R), np.float32)
+    f[2:-2, 2:-2, w_from:] = -1.0
+    return f
+
+
+def _constructed_candidates():
+    """Six candidates with their expected feasibility after post-processing.
+
+    Solid fractions (the fake fitness below) are highest for the infeasible ones, so that a
+    ranking that ignored feasibility would pick them.
+    """
+    empty = np.ones((R, R, R), np.float32)
+    narrow, _ = wsg50_fingers(width=0.02, depth=0.03)
+    wide, _ = wsg50_fingers(width=0.04, depth=0.04)
+    wide_speck = wide.copy()
+    wide_speck[2:4, 2:4, 36:38] = -1.0  # a floating speck: two components until post-processing
+    flat, _ = wsg50_fingers(width=0.03, depth=0.02)
+    stub_and_float = _floating_block(12)
+    stub_and_float[18:22, 18:22, :4] = -1.0  # small part on the mount, the big part floats
+    fingers = [empty, _floating_block(), narrow, wide_speck, flat, stub_and_float]
+    feasible = [False, False, True, True, True, False]
+    return np.stack(fingers), np.array(feasible)
+
+
+def _fake_predict(models, objects, lefts, rights):
+    """Stand-in fitness: the solid fraction of the (post-processed) left finger, for all 11."""
+    frac = (np.asarray(lefts) < 0).mean(axis=(2, 3, 4))
+    return np.repeat(frac[..., None], len(TRIAL_NAMES), axis=-1).astype(np.float32)
+
+
+def _propose_from(fingers):
+    """A propose() returning the same constructed candidates for every object."""
+
+    def propose(models, objects, key, candidates, noise=0.0):
+        assert candidates == len(fingers)
+        f = np.broadcast_to(fingers, (len(objects),) + fingers.shape).copy()
+        return f, f.copy()
+
+    return propose
+
+
+# ------------------------------------------------------------------------------------ design()
+
+
+def test_design_sphere_single(models, sphere_tsdf):
+    # f2f_jax.design is the function even after the designer module was imported (as above)
+    pair = f2f_jax.design(sphere_tsdf, params=models)
+    assert isinstance(pair, design_module.FingerPair)
+    assert pair.left.shape == pair.right.shape == (R, R, R)
+    assert pair.left.dtype == pair.right.dtype == np.float32
+    assert pair.predicted.shape == (11,) and pair.predicted.dtype == np.float32
+    assert np.all((pair.predicted >= 0) & (pair.predicted <= 1))
+    assert pair.simulated is None
+    assert pair.feasible == (is_feasible(pair.left) and is_feasible(pair.right))
+    np.testing.assert_array_equal(pair.object, sphere_tsdf)
+    # candidate 0 is the generator's own output, post-processed as in training
+    left, right = models.generate(sphere_tsdf[None])
+    np.testing.assert_allclose(pair.left, largest_component(np.asarray(left)[0]), atol=1e-6)
+    np.testing.assert_allclose(pair.right, largest_component(np.asarray(right)[0]), atol=1e-6)
+    # the repr is a table of outcomes, not arrays
+    text = repr(pair)
+    assert all(name in text for name in TRIAL_NAMES) and "array" not in text and len(text) < 1500
+    assert str(pair) == text
+
+
+def test_design_candidates_pick_best_feasible(models, sphere_tsdf):
+    k, key = 8, 3
+    pair = design_module.design(sphere_tsdf, params=models, candidates=k, key=key)
+    # the same candidates, scored independently
+    lefts, rights = design_module.propose(models, sphere_tsdf[None], design_module._as_key(key), k)
+    assert np.abs(lefts[0, 1:] - lefts[0, :1]).max() > 0, "latent noise made no new candidates"
+    lefts = np.stack([[largest_component(f) for f in lefts[0]]])
+    rights = np.stack([[largest_component(f) for f in rights[0]]])
+    feasible = np.array([is_feasible(a) and is_feasible(b) for a, b in zip(lefts[0], rights[0])])
+    assert pair.n_feasible == feasible.sum() and pair.n_candidates == k
+    assert pair.feasible == feasible.any()
+    pred = models.predict(np.repeat(sphere_tsdf[None], k, 0), lefts[0], rights[0])
+    means = np.asarray(pred).mean(axis=1)
+    pool = means[feasible] if feasible.any() else means
+    assert pair.predicted.mean() == pytest.approx(pool.max(), abs=1e-5)
+    np.testing.assert_allclose(pair.left, lefts[0, pair.candidate], atol=1e-6)
+
+
+def test_design_filters_infeasible_and_ranks(models, sphere_tsdf, monkeypatch):
+    fingers, feasible = _constructed_candidates()
+    monkeypatch.setattr(design_module, "propose", _propose_from(fingers))
+    monkeypatch.setattr(design_module, "predict", _fake_predict)
+    pair = design_module.design(sphere_tsdf, params=models, candidates=len(fingers))
+    post = np.stack([largest_component(f) for f in fingers])
+    assert [is_feasible(f) for f in post] == feasible.tolist()  # the construction is right
+    frac = (post < 0).mean(axis=(1, 2, 3))
+    assert frac.argmax() not in np.nonzero(feasible)[0]  # the best-predicted one is infeasible
+    expected = int(np.nonzero(feasible)[0][frac[feasible].argmax()])
+    assert expected == 3
+    assert pair.feasible and pair.candidate == expected and pair.n_feasible == 3
+    assert pair.predicted.mean() == pytest.approx(frac[feasible].max())
+    # the returned finger is post-processed: the speck is gone
+    np.testing.assert_array_equal(pair.left, post[3])
+    assert (fingers[3] < 0).sum() > (pair.left < 0).sum()
+
+
+def test_design_no_feasible_candidate_warns(models, sphere_tsdf, monkeypatch):
+    fingers, feasible = _constructed_candidates()
+    bad = fingers[~feasible]
+    monkeypatch.setattr(design_module, "propose", _propose_from(bad))
+    monkeypatch.setattr(design_module, "predict", _fake_predict)
+    with pytest.warns(design_module.InfeasibleDesignWarning, match="none of the 3 candidates"):
+        pair = design_module.design(sphere_tsdf, params=models, candidates=len(bad))
+    assert not pair.feasible and pair.n_feasible == 0
+    frac = (np.stack([largest_component(f) for f in bad]) < 0).mean(axis=(1, 2, 3))
+    assert pair.candidate == frac.argmax()
+    with pytest.raises(VolumeError, match="not feasible"):
+        pair.export_stl("unused")
+
+
+def test_rank_candidates_keys():
+    feasible = np.array([[True, True, True, False, True]])
+    pred = np.array([0.9, 0.5, 0.6, 0.99, 0.6])[None, :, None].repeat(11, -1)
+    sim = np.zeros((1, 5, 11), np.uint8)
+    for k, passed in enumerate([3, 5, 5, 11, 5]):
+        sim[0, k, :passed] = 1
+    # predicted only: feasible by mean; a full tie goes to the lower index
+    assert design_module.rank_candidates(feasible, pred).tolist() == [[0, 2, 4, 1, 3]]
+    # simulated first, predicted breaks ties, then the index
+    assert design_module.rank_candidates(feasible, pred, sim).tolist() == [[2, 4, 1, 0, 3]]
+
+
+def test_design_batch_returns_list(models, sphere_tsdf, box_tsdf):
+    objs = np.stack([sphere_tsdf, box_tsdf])
+    pairs = design_module.design(objs, params=models, candidates=2, key=1)
+    assert isinstance(pairs, list) and len(pairs) == 2
+    for pair, obj in zip(pairs, objs):
+        np.testing.assert_array_equal(pair.object, obj)
+        assert pair.left.shape == (R, R, R) and pair.predicted.shape == (11,)
+        assert pair.n_candidates == 2
+
+
+def test_export_stl_millimetres_watertight(models, sphere_tsdf, monkeypatch, tmp_path):
+    left, right = imprint_fingers(sphere_tsdf)
+    cands = np.stack([left, right])  # two candidates; both feasible
+    monkeypatch.setattr(design_module, "propose",
+                        lambda m, o, k, c, noise=0.0: (cands[None].copy(), cands[None, ::-1].copy()))
+    pair = design_module.design(sphere_tsdf, params=models, candidates=2)
+    assert pair.feasible
+    paths = pair.export_stl(tmp_path / "stl")
+    assert [p.name for p in paths] == ["left.stl", "right.stl"]
+    for path in paths:
+        mesh = trimesh.load(path)
+        assert mesh.is_watertight
+        assert mesh.volume > 0
+        # the mount plate spans the 6 cm cube less a voxel: tens of millimetres, not metres
+        assert 40.0 < mesh.extents.max() < 100.0
+        assert mesh.extents.min() > 3.0
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.zeros((R, R, R - 1), np.float32), "expected"),
+    (np.zeros((2, 2, R, R, R), np.float32), "expected one volume"),
+    (np.full((R, R, R), np.nan, np.float32), "NaN"),
+    (np.ones((R, R, R), np.float32), "empty"),
+    (-np.ones((R, R, R), np.float32), "every voxel is inside"),
+])
+def test_design_bad_input_raises(models, bad, match):
+    with pytest.raises(VolumeError, match=match):
+        design_module.design(bad, params=models)
+
+
+def test_design_bad_batch_member_and_options(models, sphere_tsdf):
+    batch = np.stack([sphere_tsdf, sphere_tsdf])
+    batch[1, 3, 3, 3] = np.nan
+    with pytest.raises(VolumeError, match=r"obj_tsdf\[1\]"):
+        design_module.design(batch, params=models)
+    with pytest.raises(ValueError, match="candidates"):
+        design_module.design(sphere_tsdf, params=models, candidates=0)
+    with pytest.raises(ValueError, match="backend"):
+        design_module.design(sphere_tsdf, params=models, backend="bullet")
+
+
+def test_design_without_checkpoint_names_the_command(sphere_tsdf, tmp_path):
+    with pytest.raises(F2FError, match="experiments/cotrain.py"):
+        design_module.design(sphere_tsdf, run_dir=tmp_path / "no_run")
+
+
+# ------------------------------------------------------------------------------------ the CLI
+
+
+@pytest.fixture
+def sphere_stl(tmp_path, sphere_mesh):
+    path = tmp_path / "sphere.stl"
+    sphere_mesh.export(path)
+    return path
+
+
+def test_cli_writes_four_files(models, sphere_stl, tmp_path, monkeypatch, capsys):
+    """The one simulating test: --verify (the default) on two constructed candidates."""
+    monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr("f2f_jax.cli._load_models", lambda run_dir: models)
+
+    def propose(m, objects, key, candidates, noise=0.0):
+        # candidate 0: the imprint pair of the object (holds a sphere); 1: flat fingertips
+        left, right = imprint_fingers(objects[0])
+        wl, wr = wsg50_fingers()
+        return np.stack([[left, wl]]), np.stack([[right, wr]])
+
+    monkeypatch.setattr(design_module, "propose", propose)
+    out = tmp_path / "out"
+    assert design_main([str(sphere_stl), "--out", str(out), "--candidates", "2"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["design.png", "left.stl", "right.stl",
+                                                     "scores.json"]
+    assert (out / "design.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    scores = json.loads((out / "scores.json").read_text())
+    assert scores["feasible"] and scores["verified"] and scores["checkpoint"] == "random init"
+    assert scores["input"] == str(sphere_stl.resolve())
+    assert list(scores["predicted"]) == list(TRIAL_NAMES) == list(scores["simulated"])
+    assert set(scores["simulated"].values()) <= {0, 1}
+    # the imprint pair grasps the sphere, flat fingertips on a sphere do not lift it
+    assert scores["simulated"]["grasp"] == 1 and scores["candidate"] == 0
+    assert "grasp" in capsys.readouterr().out
+    # --force replaces the directory whole; without --verify nothing is simulated
+    (out / "stale.txt").write_text("old")
+    assert design_main([str(sphere_stl), "--out", str(out), "--candidates", "2", "--no-verify",
+                        "--force"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["design.png", "left.stl", "right.stl",
+                                                     "scores.json"]
+    scores = json.loads((out / "scores.json").read_text())
+    assert scores["simulated"] is None and not scores["verified"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]  # no temp dirs left
+
+
+def test_cli_bad_inputs_write_nothing(sphere_stl, tmp_path, capsys):
+    text = tmp_path / "x.obj"
+    text.write_text("this is not a mesh\n")
+    cases = [text, tmp_path / "missing.stl"]
+    for i, mesh in enumerate(cases):
+        out = tmp_path / f"out{i}"
+        assert design_main([str(mesh), "--out", str(out)]) == 2
+        assert not out.exists()
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("f2f-design: error:") and len(err.splitlines()) == 1
+        assert str(mesh) in err
+    # no checkpoint in the run directory
+    out = tmp_path / "out_ckpt"
+    assert design_main([str(sphere_stl), "--out", str(out), "--run-dir", str(tmp_path / "run")]) == 2
+    assert "cotrain.py" in capsys.readouterr().err and not out.exists()
+    # a non-empty output directory is left alone without --force
+    full = tmp_path / "full"
+    full.mkdir()
+    (full / "keep.txt").write_text("mine")
+    assert design_main([str(sphere_stl), "--out", str(full)]) == 2
+    assert "--force" in capsys.readouterr().err and (full / "keep.txt").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["full", "sphere.stl", "x.obj"]
+
+
+def test_cli_process_exit_code_no_traceback(tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "f2f_jax.cli", str(tmp_path / "nope.obj"),
+                           "--out", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr and "mesh file not found" in proc.stderr
+    assert not out.exists()
