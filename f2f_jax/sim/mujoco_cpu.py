@@ -76,10 +76,28 @@ def _digest(arr: np.ndarray) -> str:
     return hashlib.sha1(np.ascontiguousarray(arr, np.float32).tobytes()).hexdigest()
 
 
-def _simulate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config) -> TrialResult:
-    """Hulls, model and trials of one feasible candidate; any geometry error is a failure."""
+def _object_offsets(object_xy, n: int) -> np.ndarray | None:
+    """evaluate's ``object_xy``: None, one [2] offset or [N, 2] offsets (m) -> [N, 2] or None."""
+    if object_xy is None:
+        return None
+    xy = np.asarray(object_xy, np.float64)
+    if xy.shape == (2,):
+        xy = np.broadcast_to(xy, (n, 2))
+    if xy.shape != (n, 2):
+        raise ValueError(f"object_xy: expected shape [2] or [{n}, 2] (metres), got {xy.shape}")
+    if not np.all(np.isfinite(xy)):
+        raise ValueError("object_xy: contains NaN/inf values")
+    return xy
+
+
+def _simulate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config,
+              object_xy=None) -> TrialResult:
+    """Hulls, model and trials of one feasible candidate; any geometry error is a failure.
+    object_xy: None or (x, y) m, the object's shift on the floor (``scene.build_model``)."""
+    place = {} if object_xy is None else {"object_xy": (float(object_xy[0]), float(object_xy[1]))}
     try:
-        model = build_model(obj_hulls, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg)
+        model = build_model(obj_hulls, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg,
+                            **place)
     except (F2FError, ValueError) as exc:
         return TrialResult.zeros(cfg.sim.n_trials, error=f"{type(exc).__name__}: {exc}")
     return run_trials(model, cfg)
@@ -87,7 +105,7 @@ def _simulate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config
 
 def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | None = None,
              threads: int | None = None, progress: bool | None = None, object_hulls=None,
-             cache_dir=None, return_info: bool = False):
+             cache_dir=None, return_info: bool = False, object_xy=None):
     """Simulate the 11 trials of N (object, left finger, right finger) triples.
 
     objects, lefts, rights: [N, 40, 40, 40] float32 TSDF arrays (or length-N sequences of
@@ -101,6 +119,10 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         them with ``geometry.hulls.object_hulls`` (coacd, cached on disk in ``cache_dir``), once
         per distinct object volume.
     return_info: also return an EvaluationInfo.
+    object_xy: None (the object at the grasp location), one [2] or per-candidate [N, 2] float
+        offsets (x, y) in metres that shift the object on the floor before every trial (x is
+        the closing direction); the robustness grasps turn it about its shifted centre.  Only
+        the "mujoco" backend; "mjx" raises NotImplementedError.
 
     Returns outcomes [N, 11] uint8 in ``TRIAL_NAMES`` order (and the info).  A candidate with an
     infeasible finger scores zeros without simulation; one whose hulls or model cannot be built
@@ -121,6 +143,10 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         raise ValueError(f"objects, lefts and rights must have one entry per candidate; got "
                          f"{n}, {len(lefts)} and {len(rights)}")
     objs = [check_tsdf(o, f"objects[{i}]", g) for i, o in enumerate(objs)]
+    offsets = _object_offsets(object_xy, n)
+    if offsets is not None and backend == "mjx":
+        raise NotImplementedError("evaluate(object_xy=...) is implemented for backend='mujoco' "
+                                  "only; the MJX batch places every object at the grasp location")
     feasible = np.ones(n, bool)
     for name, fingers in (("lefts", lefts), ("rights", rights)):
         for i, f in enumerate(fingers):
@@ -171,7 +197,8 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
             hulls = hull_list[i]
             if isinstance(hulls, str):
                 return TrialResult.zeros(n_trials, error=f"object hulls: {hulls}")
-            return _simulate(hulls, lefts[i], rights[i], cfg)
+            return _simulate(hulls, lefts[i], rights[i], cfg,
+                             None if offsets is None else offsets[i])
 
         show = progress if progress is not None else len(todo) > _AUTO_PROGRESS
         done = pool.map(work, todo)

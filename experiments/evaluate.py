@@ -1,0 +1,254 @@
+"""The paper's Table 1 and Table 2 for a co-training run (or the baselines alone).
+
+    python experiments/evaluate.py                          # WSG50 + Imprint, 12 built-in objects
+    python experiments/evaluate.py --run-dir runs/cotrain   # + RandEmb+FN, Fit2Form; held-out objects
+    python experiments/evaluate.py --run-dir runs/cotrain --extra "Fit2Form GS=runs/gs" \\
+        --extra ImpGN=runs/impgn --design-search 64 --objects 64 --tables 1,2
+
+With --run-dir the held-out objects of the run (DIR/objects, its fixed split) are evaluated and the
+run's newest checkpoint gives the rows "Fit2Form" (or "Fit2Form GS", ... after the run's objectives)
+and "RandEmb+FN" (its shape decoder and fitness net without the generator).  Without a checkpoint
+only WSG50 and Imprint are run.  Each --extra NAME=RUN_DIR adds a Table 1 row from another run's
+checkpoint (ablations).  Table 2 has the paper's rows: WSG50, Imprint and the run's own row.
+Writes table1.{md,csv,png}, table2.{md,csv,png} and results.json into --out (default DIR/eval,
+or runs/eval without a run) and prints the markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def _fail(msg: str) -> int:
+    print(f"evaluate: error: {msg}", file=sys.stderr)
+    return 2
+
+
+def _say(msg: str) -> None:
+    print(f"evaluate: {msg}", file=sys.stderr, flush=True)
+
+
+def _run_config(run_dir: Path):
+    """The Config recorded in a run's run.json, or None."""
+    path = run_dir / "run.json"
+    if not path.exists():
+        return None
+    from f2f_jax.train.checkpoint import config_from_dict
+
+    return config_from_dict(json.loads(path.read_text())["config"])
+
+
+def _held_out_objects(run_dir: Path, cfg):
+    """The run's held-out object volumes [N, R, R, R] and names, in the run's order."""
+    import numpy as np
+
+    from f2f_jax.data import load_or_make_objects, object_split
+
+    directory = run_dir / "objects"
+    meta_path = directory / "source.json"
+    if not meta_path.exists():
+        raise FileNotFoundError(f"{directory} holds no object set (no source.json): is {run_dir} a "
+                                "co-training run directory?")
+    meta = json.loads(meta_path.read_text())
+    tsdfs, names = load_or_make_objects(meta["source"], meta["n"], meta["seed"], directory,
+                                        cfg.geometry, progress=False)
+    index = {name: i for i, name in enumerate(names)}
+    test = [index[n] for n in object_split(directory)["test"] if n in index]
+    return tsdfs[np.array(test, int)], [names[i] for i in test]
+
+
+def _builtin_objects(n: int, seed: int, cfg):
+    import numpy as np
+    from tqdm.auto import tqdm
+
+    from f2f_jax.data import builtin_objects
+    from f2f_jax.geometry import mesh_to_tsdf
+
+    meshes = builtin_objects(n, seed=seed)
+    tsdfs = [mesh_to_tsdf(m, cfg.geometry) for m in tqdm(meshes, desc="objects -> TSDF", unit="obj")]
+    return np.stack(tsdfs), [m.metadata.get("name", f"object{i}") for i, m in enumerate(meshes)]
+
+
+def _load_models(run_dir: Path):
+    """(Models, None) or (None, why not)."""
+    try:
+        from f2f_jax.train.checkpoint import load_models
+    except ImportError as exc:
+        return None, f"no checkpoint loader ({exc})"
+    from f2f_jax.errors import F2FError
+
+    try:
+        return load_models(run_dir), None
+    except (F2FError, FileNotFoundError) as exc:
+        return None, str(exc)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run-dir", default=None, help="a co-training run directory (objects + checkpoints)")
+    p.add_argument("--extra", action="append", default=[], metavar="NAME=RUN_DIR",
+                   help="another run's checkpoint as a Table 1 row (repeatable), e.g. 'Fit2Form GS=runs/gs'")
+    p.add_argument("--objects", type=int, default=None,
+                   help="cap on held-out objects (default: all of them; 12 built-in ones without a run)")
+    p.add_argument("--tables", default="1,2", help="which tables: 1, 2 or 1,2")
+    p.add_argument("--out", default=None, help="output directory (default RUN_DIR/eval, or runs/eval)")
+    p.add_argument("--config", default=None,
+                   help="tiny | default | paper: the simulator settings (default: the run's, else default)")
+    p.add_argument("--design-search", type=int, default=None, metavar="K",
+                   help="add the row 'Fit2Form + search (K, verify)': f2f_jax.design with K candidates")
+    p.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco")
+    p.add_argument("--randemb-steps", type=int, default=200,
+                   help="RandEmb+FN optimisation steps (paper: 200)")
+    p.add_argument("--randemb-samples", type=int, default=4, help="RandEmb+FN random starts per object")
+    p.add_argument("--no-randemb", action="store_true", help="skip the RandEmb+FN row (slow on a CPU)")
+    p.add_argument("--seed", type=int, default=0, help="built-in objects, RandEmb keys, position shifts")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    args = p.parse_args(argv)
+
+    from f2f_jax import config
+
+    try:
+        tables = sorted({int(t) for t in args.tables.split(",") if t.strip()})
+    except ValueError:
+        return _fail(f"--tables {args.tables!r}: a comma-separated list of 1 and 2")
+    if not tables or not set(tables) <= {1, 2}:
+        return _fail(f"--tables {args.tables!r}: choose 1, 2 or 1,2")
+    if args.config is not None and args.config not in config.CONFIGS:
+        return _fail(f"unknown --config {args.config!r}; choose one of {', '.join(config.CONFIGS)}")
+    if args.objects is not None and args.objects < 1:
+        return _fail("--objects must be at least 1")
+    if args.randemb_steps < 0 or args.randemb_samples < 1:
+        return _fail("--randemb-steps must be >= 0 and --randemb-samples >= 1")
+    if args.design_search is not None and args.design_search < 1:
+        return _fail("--design-search K needs K >= 1")
+    extras = []
+    for item in args.extra:
+        name, sep, path = item.partition("=")
+        if not sep or not name.strip() or not path.strip():
+            return _fail(f"--extra {item!r}: expected NAME=RUN_DIR")
+        if not Path(path).expanduser().is_dir():
+            return _fail(f"--extra {item!r}: no such directory {path}")
+        extras.append((name.strip(), Path(path).expanduser()))
+
+    start = time.perf_counter()
+    from f2f_jax import evaluate as E
+
+    run_dir = Path(args.run_dir).expanduser() if args.run_dir else None
+    if run_dir is not None and not run_dir.is_dir():
+        return _fail(f"--run-dir {run_dir}: no such directory")
+    cfg = config.get(args.config) if args.config else (_run_config(run_dir) if run_dir else None)
+    cfg = cfg or config.default()
+    out_dir = Path(args.out) if args.out else (run_dir / "eval" if run_dir else Path("runs/eval"))
+
+    # -- objects -------------------------------------------------------------------------------
+    if run_dir is not None:
+        try:
+            objects, names = _held_out_objects(run_dir, cfg)
+        except (FileNotFoundError, ValueError) as exc:
+            return _fail(str(exc))
+        what = f"held-out objects of {run_dir}"
+    else:
+        objects, names = _builtin_objects(args.objects or 12, args.seed, cfg)
+        what = f"built-in objects (seed {args.seed})"
+    if args.objects is not None:
+        objects, names = objects[: args.objects], names[: args.objects]
+    if len(objects) == 0:
+        return _fail(f"no objects to evaluate ({what})")
+    _say(f"{len(objects)} {what}; simulator: {args.backend}; output: {out_dir}")
+
+    # -- designers -----------------------------------------------------------------------------
+    designers = {"WSG50": E.wsg50_designer(cfg), "Imprint": E.imprint_designer(cfg)}
+    table2_rows = ["WSG50", "Imprint"]
+    if run_dir is not None:
+        models, why = _load_models(run_dir)
+        if models is None:
+            _say(f"no usable checkpoint in {run_dir} ({why}): running the WSG50 and Imprint rows only")
+            if args.design_search:
+                _say("--design-search needs a checkpoint: skipping that row")
+        else:
+            import jax
+
+            row = E.OBJECTIVE_ROWS.get(models.objectives, f"Fit2Form ({models.objectives})")
+            _say(f"{row}: {models.source}")
+            if not args.no_randemb:
+                designers["RandEmb+FN"] = E.random_embedding_designer(
+                    models, jax.random.key(args.seed), samples=args.randemb_samples,
+                    steps=args.randemb_steps)
+            designers[row] = E.models_designer(models)
+            table2_rows.append(row)
+            if args.design_search:
+                try:
+                    from f2f_jax.designer import design
+                except ImportError as exc:
+                    _say(f"no design API yet ({exc}): skipping the design-search row")
+                else:
+                    k = args.design_search
+                    name = f"Fit2Form + search ({k}, verify)"
+                    designers[name] = E.pair_designer(
+                        lambda objs, k=k: design(objs, params=models, candidates=k, verify=True,
+                                                 backend=args.backend),
+                        batched=True, desc=name)
+                    table2_rows.append(name)
+    elif args.design_search:
+        _say("--design-search needs --run-dir with a checkpoint: skipping that row")
+    for name, path in extras:
+        models_x, why = _load_models(path)
+        if models_x is None:
+            _say(f"--extra {name}: no usable checkpoint in {path} ({why}): row skipped")
+            continue
+        designers[name] = E.models_designer(models_x)
+
+    # -- designs once, hulls once, then the tables ---------------------------------------------
+    progress = not args.quiet
+    objs, hulls, notes = E.prepare_objects(objects, cfg, progress=progress)
+    for note in notes:
+        _say(note)
+    designs = {}
+    for name, designer in designers.items():
+        _say(f"designing: {name}")
+        designs.update(E.make_designs({name: designer}, objs, progress=progress))
+    if notes:  # prepare_objects dropped some: keep the names in step
+        dropped = {int(n.split()[1]) for n in notes if n.startswith("object ")}
+        names = [n for i, n in enumerate(names) if i not in dropped]
+    results = {"objects": len(objs), "names": names, "source": what, "backend": args.backend,
+               "config": args.config or ("run" if run_dir and _run_config(run_dir) else "default"),
+               "design_seconds": {k: round(d.seconds, 2) for k, d in designs.items()}}
+    printed = []
+    if 1 in tables:
+        t1 = E.table1(designs, objs, cfg, backend=args.backend, progress=progress, object_hulls=hulls)
+        t1.notes[:0] = notes
+        results["table1"] = {"values": t1.values, "feasible": t1.feasible,
+                             "sim_seconds": round(t1.sim_seconds, 2),
+                             "outcomes": {k: ["".join(map(str, o)) for o in v]
+                                          for k, v in t1.outcomes.items()},
+                             "files": {k: str(v) for k, v in t1.write(out_dir, "table1").items()}}
+        printed.append(t1.to_markdown())
+    if 2 in tables:
+        t2 = E.table2({k: designs[k] for k in table2_rows}, objs, cfg, backend=args.backend,
+                      progress=progress, object_hulls=hulls, seed=args.seed)
+        t2.notes[:0] = notes
+        results["table2"] = {"values": t2.values, "feasible": t2.feasible,
+                             "sim_seconds": round(t2.sim_seconds, 2),
+                             "grasp": {k: {c: "".join(map(str, v[j, :, 0]))
+                                           for j, c in enumerate(t2.columns)}
+                                       for k, v in t2.outcomes.items()},
+                             "files": {k: str(v) for k, v in t2.write(out_dir, "table2").items()}}
+        printed.append(t2.to_markdown())
+    results["seconds"] = round(time.perf_counter() - start, 1)
+
+    from f2f_jax.fileio import atomic_path
+
+    with atomic_path(out_dir / "results.json") as tmp:
+        tmp.write_text(json.dumps(results, indent=1))
+    print("\n".join(printed))
+    print(f"{len(objs)} objects ({what}); wall time {results['seconds']:.0f} s; "
+          f"files in {out_dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
