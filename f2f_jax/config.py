@@ -134,6 +134,7 @@ class NetConfig:
     fitness_channels: tuple[int, ...] = (32, 64, 128, 256, 512, 1024)
     fitness_blocks: tuple[int, ...] = (2, 2, 1, 1, 1, 1)
     fitness_fc: tuple[int, ...] = (512, 256, 128)
+    fitness_stem_kernel: int = 5  # first stride-2 convolution (paper: 5^3; odd, padded to "same")
     # BatchNorm running averages: PyTorch's momentum 0.1 (the original) is Flax's 0.9.
     bn_momentum: float = 0.9
     leaky_slope: float = 0.01  # PyTorch's LeakyReLU default, as in the original

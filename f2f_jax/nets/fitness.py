@@ -136,7 +136,7 @@ class FitnessNet(nn.Module):
 
         x = volume[..., None].astype(self.dtype)
         for stage, (width, blocks) in enumerate(zip(cfg.fitness_channels, cfg.fitness_blocks)):
-            x = down(x, width, 5 if stage == 0 else 3, f"down{stage}")
+            x = down(x, width, cfg.fitness_stem_kernel if stage == 0 else 3, f"down{stage}")
             for b in range(blocks):
                 x = ResidualBlock(cfg, self.dtype, name=f"res{stage}_{b}")(x, train=train)
         x = down(x, cfg.fitness_channels[-1], 3, f"down{len(cfg.fitness_channels)}")
