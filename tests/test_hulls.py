@@ -349,3 +349,22 @@ def test_noise_volume_does_not_hang_in_coacd(tmp_path):
     with pytest.warns(RuntimeWarning, match="faces"):
         h = object_hulls(noise, cache_dir=tmp_path)
     assert h.n_pieces >= 1
+
+
+def test_many_objects_in_worker_processes_match_one_by_one(sphere_tsdf, tmp_path):
+    """object_hulls_many: uncached volumes decomposed by two worker processes give the hulls
+    object_hulls gives; a duplicate is done once; a bad volume is an error string, not a crash."""
+    from f2f_jax.geometry.hulls import object_hulls_many
+
+    r = G.resolution
+    box = np.ones((r, r, r), np.float32)
+    box[12:28, 10:30, 1:25] = -1.0  # a convex box: no coacd, so this stays fast
+    empty = np.ones((r, r, r), np.float32)
+    got = object_hulls_many([sphere_tsdf, box, sphere_tsdf, empty], cache_dir=tmp_path / "a",
+                            workers=2, progress=False)
+    assert isinstance(got[3], str) and "empty" in got[3]
+    assert got[0] is got[2]
+    for vol, h in ((sphere_tsdf, got[0]), (box, got[1])):
+        ref = object_hulls(vol, cache_dir=tmp_path / "b")
+        assert np.array_equal(ref.vertices, h.vertices) and np.array_equal(ref.counts, h.counts)
+    assert len(list((tmp_path / "a").glob("*.npz"))) == 2  # both written to the cache by workers

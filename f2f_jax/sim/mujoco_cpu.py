@@ -8,7 +8,6 @@ the inputs: each candidate is simulated alone, single-threaded, from the same in
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import os
 import time
@@ -20,7 +19,8 @@ import numpy as np
 from f2f_jax.config import Config
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry.fingers import feasibility_report
-from f2f_jax.geometry.hulls import Hulls, finger_hulls, object_hulls as make_object_hulls
+from f2f_jax.geometry.hulls import Hulls, finger_hulls
+from f2f_jax.geometry.hulls import object_hulls_many as make_object_hulls_many
 from f2f_jax.geometry.tsdf import check_tsdf
 from f2f_jax.sim.protocol import TrialResult, run_trials
 from f2f_jax.sim.scene import build_model
@@ -70,10 +70,6 @@ def _as_volumes(volumes, name: str, r: int) -> list[np.ndarray]:
             raise VolumeError(f"{name}[{i}]: expected shape ({r}, {r}, {r}), got {arr.shape}")
         out.append(arr)
     return out
-
-
-def _digest(arr: np.ndarray) -> str:
-    return hashlib.sha1(np.ascontiguousarray(arr, np.float32).tobytes()).hexdigest()
 
 
 def _object_offsets(object_xy, n: int) -> np.ndarray | None:
@@ -172,26 +168,12 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
         if object_hulls is None:
-            # Decompose each distinct object once (coacd is slow; the disk cache helps reruns).
-            keys = {i: _digest(objs[i]) for i in todo}
-            first = {}
-            for i in todo:
-                first.setdefault(keys[i], i)
-
-            def decompose(i):
-                try:
-                    return make_object_hulls(objs[i], cfg, cache_dir=cache_dir)
-                except (F2FError, ValueError) as exc:
-                    return f"{type(exc).__name__}: {exc}"
-
-            # In this thread, one after another: coacd is not known to be thread-safe.
-            items = first.items()
-            if progress or (progress is None and len(first) > 1):
-                from tqdm.auto import tqdm
-
-                items = tqdm(items, total=len(first), desc="object hulls", unit="obj")
-            made = {key: decompose(i) for key, i in items}
-            hull_list = [made[keys[i]] if i in keys else None for i in range(n)]
+            # each distinct object once, uncached ones by coacd in one process per core
+            hull_list = [None] * n
+            made = make_object_hulls_many([objs[i] for i in todo], cfg, cache_dir=cache_dir,
+                                          workers=threads, progress=progress)
+            for i, hulls in zip(todo, made):
+                hull_list[i] = hulls
 
         def work(i):
             hulls = hull_list[i]
@@ -241,16 +223,12 @@ def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir
     if object_hulls is not None:
         hull_list = [object_hulls] * n if isinstance(object_hulls, Hulls) else list(object_hulls)
     else:
-        cache = {}
-        hull_list = []
-        for i in range(n):
-            key = _digest(objs[i])
-            if key not in cache and feasible[i]:
-                try:
-                    cache[key] = make_object_hulls(objs[i], cfg, cache_dir=cache_dir)
-                except (F2FError, ValueError) as exc:
-                    cache[key] = f"{type(exc).__name__}: {exc}"
-            hull_list.append(cache.get(key))
+        hull_list = [None] * n
+        todo = np.nonzero(feasible)[0]
+        made = make_object_hulls_many([objs[i] for i in todo], cfg, cache_dir=cache_dir,
+                                      progress=progress)
+        for i, hulls in zip(todo, made):
+            hull_list[i] = hulls
     models, index, errors = [], [], {}
     for i in np.nonzero(feasible)[0]:
         hulls = hull_list[i]

@@ -39,7 +39,8 @@ from tqdm.auto import tqdm
 from f2f_jax.config import TRIAL_NAMES, Config
 from f2f_jax.errors import CheckpointError, F2FError
 from f2f_jax.fileio import atomic_path
-from f2f_jax.geometry import imprint_fingers, is_feasible, largest_component, wsg50_fingers
+from f2f_jax.designer import postprocess
+from f2f_jax.geometry import imprint_fingers, is_feasible, wsg50_fingers
 from f2f_jax.train import steps as S
 from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
 from f2f_jax.train.state import (
@@ -67,16 +68,6 @@ def _check_finite(values: np.ndarray, stage: str, first_step: int) -> None:
     if bad.size:
         raise NaNLossError(f"{stage}: loss is {values[bad[0]]} at step {first_step + int(bad[0])}; "
                            "lower the learning rate or check the inputs")
-
-
-def _postprocess(fingers: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Largest connected component of each generated finger; returns (fingers, feasible[B])."""
-    out = np.empty_like(fingers)
-    feasible = np.zeros(len(fingers), bool)
-    for i, f in enumerate(fingers):
-        out[i] = largest_component(f)
-        feasible[i] = is_feasible(out[i])
-    return out, feasible
 
 
 class CoTrainRun:
@@ -383,9 +374,9 @@ class CoTrainRun:
             x = np.concatenate([chunk, np.repeat(chunk[-1:], pad, 0)]) if pad else chunk
             l, r = f(self.state["gn"].variables, S.shard(x))
             lefts.append(np.asarray(l)[: len(chunk)]); rights.append(np.asarray(r)[: len(chunk)])
-        lefts, fl = _postprocess(np.concatenate(lefts))
-        rights, fr = _postprocess(np.concatenate(rights))
-        return lefts, rights, fl & fr
+        lefts, rights = np.concatenate(lefts)[:, None], np.concatenate(rights)[:, None]
+        feasible = postprocess(lefts, rights, self.cfg.geometry)[:, 0]  # in place, as design() does
+        return lefts[:, 0], rights[:, 0], feasible
 
     def evaluate_heldout(self, label: str) -> dict:
         """Simulated success of the current generator on the held-out evaluation objects."""
@@ -411,9 +402,7 @@ class CoTrainRun:
             self.store.append(objs, lefts, rights, out, kind="generated",
                               names=[self.names[i] for i in pick], keys=[key], cycle=c)
         new = self._rows(lambda cyc, k: cyc == c)  # read back (float16-rounded, as on a resume)
-        from f2f_jax.geometry import is_feasible as _feasible
-
-        feasible = np.array([_feasible(l) and _feasible(r) for l, r in zip(new["left"], new["right"])])
+        feasible = np.array([is_feasible(a) and is_feasible(b) for a, b in zip(new["left"], new["right"])])
         sim_seconds = time.perf_counter() - start
         # refit the fitness net on balanced batches: half this cycle's rows, half pretraining rows
         half = max(1, t.cotrain_batch_size // 2)
