@@ -15,8 +15,17 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from pathlib import Path
+
+
+def _deterministic_xla() -> None:
+    """A resumed run must end where an uninterrupted one ends: ask XLA for deterministic GPU
+    kernels (no atomics in reductions).  Set before JAX starts; harmless on a CPU."""
+    flag = "--xla_gpu_deterministic_ops=true"
+    if flag not in os.environ.get("XLA_FLAGS", ""):
+        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
 
 
 def _default_backend() -> str:
@@ -55,6 +64,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
+    _deterministic_xla()
 
     from f2f_jax import config
     from f2f_jax.errors import F2FError
@@ -79,12 +89,16 @@ def main(argv=None) -> int:
     cfg = config.get(args.config)
     changes = {}
     if args.n_objects is not None:
+        if args.objects != "builtin":
+            return fail("--n-objects applies to the built-in objects only (a directory is used whole)")
         if args.n_objects < 4:
             return fail("--n-objects must be at least 4")
         changes["n_objects"] = args.n_objects
     if args.objectives is not None:
         changes["objectives"] = args.objectives
     if args.seed is not None:
+        if args.seed < 0:
+            return fail(f"--seed must be >= 0, got {args.seed}")
         changes["seed"] = args.seed
     if args.cycles is not None:
         changes["cycles"] = args.cycles
@@ -98,7 +112,7 @@ def main(argv=None) -> int:
         run = CoTrainRun(args.run_dir, cfg, config_name=args.config, objects=args.objects,
                          backend=backend, progress=not args.quiet)
         summary = run.run(cfg.train.cycles)
-    except F2FError as exc:
+    except (F2FError, ValueError) as exc:  # ValueError: an object set made from other settings
         return fail(str(exc))
     print(_table(summary))
     print(f"AE held-out IoU: {summary['ae_heldout_iou']:.3f}; curves: {Path(args.run_dir) / 'curves.png'}")

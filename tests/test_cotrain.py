@@ -84,7 +84,10 @@ def test_killed_and_resumed_run_matches_uninterrupted(uninterrupted, tmp_path):
         assert len(leaves_a) == len(leaves_b)
         for x, y in zip(leaves_a, leaves_b):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=0, atol=1e-6)
-    # the simulated designs of every cycle were stored once, not twice
+    # the rerun resumed (pretraining was not repeated) ...
+    log = _log(run_dir)
+    assert sum(r.get("stage") == "ae" and r.get("epoch") == 1 for r in log) == 1
+    # ... and the simulated designs of every cycle were stored once, not twice
     cycles = [r["cycle"] for r in _log(run_dir) if r.get("stage") == "cycle"]
     assert sorted(set(cycles)) == [1, 2, 3]
     from f2f_jax.data.store import GraspStore
@@ -160,6 +163,13 @@ def test_bad_command_lines_fail_cleanly(uninterrupted, tmp_path, capsys):
     before = {p: p.stat().st_mtime_ns for p in run_dir.rglob("*")}
     assert cli.main(["--config", "default", "--cycles", "1", "--run-dir", str(run_dir), "--quiet"]) == 2
     assert "another --run-dir" in capsys.readouterr().err
+    tiny = ["--config", "tiny", "--quiet", "--run-dir", str(run_dir)]
+    assert cli.main(["--cycles", "1", *tiny]) == 2  # it holds 3
+    assert "already holds 3 cycles" in capsys.readouterr().err
+    assert cli.main(["--cycles", "3", "--backend", "mjx", *tiny]) == 2
+    assert "--backend mujoco" in capsys.readouterr().err
+    assert cli.main(["--seed", "-1", "--run-dir", str(tmp_path / "d")]) == 2
+    assert not (tmp_path / "d").exists()
     assert {p: p.stat().st_mtime_ns for p in run_dir.rglob("*")} == before
 
 

@@ -57,8 +57,8 @@ def trained_fn(cfg, volumes):
     objs, lefts, rights = volumes
     y = np.zeros((4, 11), np.float32)
     y[:2] = 1.0
-    fn = new_state(init_fitness(cfg), optimizer(cfg.train))
-    fn, losses = _run(S.fn_step(cfg), fn, (objs, lefts, rights, y), 30)
+    fn = S.replicate(new_state(init_fitness(cfg), optimizer(cfg.train)))
+    fn, losses = _run(S.fn_step(cfg), fn, S.shard(objs, lefts, rights, y), 30)
     return fn, losses, y
 
 
@@ -74,6 +74,7 @@ def test_ae_and_fitness_losses_fall(cfg, volumes, trained_fn):
     assert step._cache_size() == 1  # one compile for 15 steps
 
     fn, losses, y = trained_fn  # two triples that hold, two that do not
+    assert S.fn_step(cfg)._cache_size() == 1  # replicated state, sharded batches: one program
     assert losses[-1] < 0.65 * losses[0], losses
     bce, prob = S.fn_eval(cfg)(fn.variables, objs, lefts, rights, y)
     prob = np.asarray(prob)  # evaluation mode (running statistics) ranks them as trained

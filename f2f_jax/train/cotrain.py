@@ -25,6 +25,7 @@ earlier process got, which is what makes resuming exact.  Each epoch appends a J
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -70,6 +71,21 @@ def _check_finite(values: np.ndarray, stage: str, first_step: int) -> None:
                            "lower the learning rate or check the inputs")
 
 
+class _Lazy:
+    """The batches of one epoch, made on the device one at a time (an epoch of paper-size batches
+    would not fit in memory at once): ``make(i, index_batch)`` for each index batch."""
+
+    def __init__(self, make, index_batches):
+        self.make, self.index_batches = make, list(index_batches)
+
+    def __len__(self) -> int:
+        return len(self.index_batches)
+
+    def __iter__(self):
+        for i, b in enumerate(self.index_batches):
+            yield self.make(i, b)
+
+
 class CoTrainRun:
     """One run directory: ``objects/``, ``store/``, ``checkpoints/``, ``log.jsonl``, ``run.json``,
     ``baselines.json``, ``curves.png``, ``summary.json``.
@@ -94,13 +110,18 @@ class CoTrainRun:
     def _run_meta(self) -> dict:
         conf = config_to_dict(self.cfg)
         conf["train"].pop("cycles")  # a run may be extended by more cycles
-        return {"config_name": self.config_name, "config": conf, "objects": self.source}
+        return {"config_name": self.config_name, "config": conf, "objects": self.source,
+                "backend": self.backend}
 
     def _check_run_json(self) -> None:
         path = self.dir / "run.json"
         if path.exists():
             old = json.loads(path.read_text())
             new = self._run_meta()
+            if old.get("backend", new["backend"]) != new["backend"]:
+                raise CheckpointError(
+                    f"{self.dir} was simulated with backend {old['backend']!r}; resume it with "
+                    f"--backend {old['backend']} (mixing simulators in one store would change it)")
             if old.get("config") != new["config"] or old.get("objects") != new["objects"]:
                 raise CheckpointError(
                     f"{self.dir} holds a run of config {old.get('config_name')!r} on objects "
@@ -235,13 +256,13 @@ class CoTrainRun:
         abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(np.shape(a), jnp.asarray(a).dtype), fresh)
         got = self.ckpt.restore(abstract) if self.ckpt.steps() else None
         if got is None:
-            self.state = fresh
+            self.state = S.replicate(fresh)
             self.position = (-1, 0, 0)  # nothing done
             return
         restored, _, meta = got
         # restored leaves come back as numpy arrays in the saved structure; rebuild the pytree types
         leaves = jax.tree.leaves(restored)
-        self.state = jax.tree.unflatten(jax.tree.structure(fresh), [jnp.asarray(x) for x in leaves])
+        self.state = S.replicate(jax.tree.unflatten(jax.tree.structure(fresh), leaves))
         self.position = (STAGES.index(meta["stage"]), int(meta["epoch"]), int(meta["cycle"]))
         print(f"resuming {self.dir}: after {meta['stage']} epoch {meta['epoch']} cycle {meta['cycle']}",
               flush=True)
@@ -292,8 +313,8 @@ class CoTrainRun:
             if self._done("ae", epoch):
                 continue
             rng, key = self._rng("ae", epoch), self._key("ae", epoch)
-            batches = [(S.shard(shapes[b]), jax.random.fold_in(key, i))
-                       for i, b in enumerate(self._batches(len(shapes), t.ae_batch_size, rng))]
+            batches = _Lazy(lambda i, b, key=key: (S.shard(shapes[b]), jax.random.fold_in(key, i)),
+                            self._batches(len(shapes), t.ae_batch_size, rng))
             rec = self._epoch("ae", step, batches, epoch, desc=f"AE epoch {epoch}/{t.ae_epochs}")
             self._log(rec)
             self._save("ae", epoch, 0)
@@ -302,7 +323,9 @@ class CoTrainRun:
         """Mean IoU of the solid voxels of held-out objects and their reconstructions."""
         idx = self.test_idx if idx is None else idx
         x = self.objects[idx]
-        recon = np.asarray(S.ae_reconstruct(self.cfg)(self.state["ae"].variables, jnp.asarray(x)))
+        f, bs = S.ae_reconstruct(self.cfg), self.cfg.train.ae_batch_size
+        recon = np.concatenate([np.asarray(f(self.state["ae"].variables, S.shard(x[s:s + bs])))
+                                for s in range(0, len(x), bs)])
         a, b = x < 0, recon < 0
         inter = (a & b).sum(axis=(1, 2, 3))
         union = np.maximum((a | b).sum(axis=(1, 2, 3)), 1)
@@ -317,11 +340,11 @@ class CoTrainRun:
             # copies: the generator's state is donated to its steps, the VAE's must survive
             params[part] = jax.tree.map(jnp.copy, self.state["ae"].params[part])
             stats[part] = jax.tree.map(jnp.copy, self.state["ae"].batch_stats[part])
-        self.state["gn"] = gn.replace(params=params, batch_stats=stats)
+        self.state["gn"] = S.replicate(gn.replace(params=params, batch_stats=stats))
 
-    def _fn_batches(self, data: dict, idx_batches) -> list[tuple]:
-        return [S.shard(data["object"][b], data["left"][b], data["right"][b],
-                        data["outcome"][b].astype(np.float32)) for b in idx_batches]
+    def _fn_batches(self, data: dict, idx_batches) -> "_Lazy":
+        return _Lazy(lambda i, b: S.shard(data["object"][b], data["left"][b], data["right"][b],
+                                          data["outcome"][b].astype(np.float32)), idx_batches)
 
     def fn_heldout_bce(self) -> float:
         """Fitness BCE on the held-out baseline triples (imprint and WSG50 on unseen objects)."""
@@ -352,14 +375,14 @@ class CoTrainRun:
         imprint = self.pre["kind"] == "imprint"
         data = {k: self.pre[k][imprint] for k in ("object", "left", "right")}
         step = S.gn_imprint_step(self.cfg)
+        if not self._done("gn", 1):
+            self._copy_ae_into_generator()
         for epoch in range(1, t.gn_epochs + 1):
             if self._done("gn", epoch):
                 continue
-            if epoch == 1:
-                self._copy_ae_into_generator()
             rng = self._rng("gn", epoch)
-            batches = [S.shard(data["object"][b], data["left"][b], data["right"][b])
-                       for b in self._batches(len(data["object"]), t.fn_batch_size, rng)]
+            batches = _Lazy(lambda i, b: S.shard(data["object"][b], data["left"][b], data["right"][b]),
+                            self._batches(len(data["object"]), t.fn_batch_size, rng))
             rec = self._epoch("gn", step, batches, epoch, desc=f"GN epoch {epoch}/{t.gn_epochs}")
             self._log(rec)
             self._save("gn", epoch, 0)
@@ -388,6 +411,14 @@ class CoTrainRun:
         self._log(res)
         return res
 
+    def _cycle_cfg(self) -> Config:
+        """The config of the generator's co-training steps: its own learning rate (the fitness
+        net refits at ``lr``); the optimiser state carries over, its structure does not change."""
+        t = self.cfg.train
+        if t.generator_lr is None or t.generator_lr == t.lr:
+            return self.cfg
+        return self.cfg.replace(train=dataclasses.replace(t, lr=t.generator_lr))
+
     def run_cycle(self, c: int) -> dict:
         t = self.cfg.train
         start = time.perf_counter()
@@ -402,7 +433,8 @@ class CoTrainRun:
             self.store.append(objs, lefts, rights, out, kind="generated",
                               names=[self.names[i] for i in pick], keys=[key], cycle=c)
         new = self._rows(lambda cyc, k: cyc == c)  # read back (float16-rounded, as on a resume)
-        feasible = np.array([is_feasible(a) and is_feasible(b) for a, b in zip(new["left"], new["right"])])
+        g = self.cfg.geometry
+        feasible = np.array([is_feasible(a, g) and is_feasible(b, g) for a, b in zip(new["left"], new["right"])])
         sim_seconds = time.perf_counter() - start
         # refit the fitness net on balanced batches: half this cycle's rows, half pretraining rows
         half = max(1, t.cotrain_batch_size // 2)
@@ -421,13 +453,13 @@ class CoTrainRun:
             if epoch >= t.min_epochs and rec["loss"] < t.fn_target_loss:
                 break
         # train the generator against the refitted fitness net
-        gstep = S.gn_fitness_step(self.cfg)
+        gstep = S.gn_fitness_step(self._cycle_cfg())
         fit_vars = self.state["fn"].variables
         gn_epochs = 0
         for epoch in range(1, t.max_epochs + 1):
             rng = self._rng("cycle", c, 2, epoch)
-            batches = [(fit_vars, S.shard(self.objects[self.train_idx[b]]))
-                       for b in self._batches(len(self.train_idx), t.cotrain_batch_size, rng)]
+            batches = _Lazy(lambda i, b: (fit_vars, S.shard(self.objects[self.train_idx[b]])),
+                            self._batches(len(self.train_idx), t.cotrain_batch_size, rng))
             rec = self._epoch("gn", gstep, batches, epoch, c, desc=f"cycle {c} GN epoch {epoch}")
             self._log(rec)
             gn_epochs = epoch
@@ -448,6 +480,7 @@ class CoTrainRun:
         if cycles < 0:
             raise ValueError(f"cycles must be >= 0, got {cycles}")
         t0 = time.perf_counter()
+        self._check_cycles(cycles)
         self.prepare_data()
         hb = self._rows(lambda c, k: c == -2)
         keep = np.isin(hb["name"], [self.names[i] for i in self.eval_idx])
@@ -475,6 +508,18 @@ class CoTrainRun:
             tmp.write_text(json.dumps(summary, indent=1))
         self.plot()
         return summary
+
+    def _check_cycles(self, cycles: int) -> None:
+        """Refuse (before touching anything) to stop a run short of the cycles it already has:
+        its generator is further along than the label the final evaluation would get."""
+        ckpt = self.dir / "checkpoints"
+        if not ckpt.is_dir() or not any(ckpt.iterdir()):
+            return
+        got = Checkpoints(ckpt).restore(None)
+        if got is not None and got[2].get("stage") == "cycle" and int(got[2]["cycle"]) > cycles:
+            have = int(got[2]["cycle"])
+            raise CheckpointError(f"{self.dir} already holds {have} cycles; ask for at least that "
+                                  f"many (--cycles {have}) or use another --run-dir")
 
     def _eval_record(self, label: str, cycle: int) -> dict:
         """Held-out evaluation of the generator after ``cycle``, cached in the run directory so

@@ -56,6 +56,12 @@ def shard(*arrays):
     return out[0] if len(out) == 1 else tuple(out)
 
 
+def replicate(tree):
+    """Place a pytree (a train state, variables) on every local device, replicated: the layout
+    the steps return, so the first and later calls share one compiled program."""
+    return jax.device_put(tree, NamedSharding(_mesh(), PartitionSpec()))
+
+
 def _apply_grads(opt: optax.GradientTransformation, state: TrainState, grads, batch_stats) -> TrainState:
     updates, opt_state = opt.update(grads, state.opt_state, state.params)
     return state.replace(params=optax.apply_updates(state.params, updates), batch_stats=batch_stats,
