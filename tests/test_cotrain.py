@@ -112,6 +112,11 @@ def test_fitness_net_learns_and_run_reports(uninterrupted):
     assert summary["success"]["imprint"][0] > summary["success"]["wsg50"][0]
     assert {"generator, cycle 0", f"generator, cycle {CYCLES}"} <= summary["success"].keys()
     assert 0.0 <= summary["ae_heldout_iou"] <= 1.0
+    # the generator after pretraining (the paper's ImpGN) is kept apart from the rolling checkpoints
+    imp_gn, final = load_models(run_dir / "pretrained"), load_models(run_dir)
+    assert "cycle 0)" in imp_gn.source and f"cycle {CYCLES})" in final.source
+    assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(imp_gn.generator["params"]),
+                                                      jax.tree.leaves(final.generator["params"])))
     assert (run_dir / "curves.png").stat().st_size > 10_000
     for r in log:
         if "loss" in r:

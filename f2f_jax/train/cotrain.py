@@ -88,7 +88,7 @@ class _Lazy:
 
 class CoTrainRun:
     """One run directory: ``objects/``, ``store/``, ``checkpoints/``, ``log.jsonl``, ``run.json``,
-    ``baselines.json``, ``curves.png``, ``summary.json``.
+    ``curves.png``, ``summary.json``, ``pretrained/`` (the models after pretraining: ImpGN).
 
     cfg: the run's Config; config_name: its name, recorded (a run directory refuses a different
     config); objects: "builtin", "pybullet" or a mesh directory; backend: the simulator
@@ -491,6 +491,7 @@ class CoTrainRun:
         self._log({"stage": "ae", "heldout_iou": iou})
         self.pretrain_fn()
         self.pretrain_gn()
+        self._keep_pretrained()
         evals = self._eval_record("cycle 0", 0)
         for c in range(1, cycles + 1):
             if self._done("cycle", 0, c):
@@ -508,6 +509,18 @@ class CoTrainRun:
             tmp.write_text(json.dumps(summary, indent=1))
         self.plot()
         return summary
+
+    def _keep_pretrained(self) -> None:
+        """The models at the end of pretraining, kept apart from the rolling checkpoints: the
+        paper's ImpGN row (``load_models(run_dir / "pretrained")``) and a start for variants."""
+        if self._done("cycle", 0, 1):
+            return  # a resumed run already past pretraining: the state is no longer that
+        ckpt = Checkpoints(self.dir / "pretrained" / "checkpoints", max_to_keep=1)
+        if not ckpt.steps():
+            meta = {"stage": "gn", "epoch": self.cfg.train.gn_epochs, "cycle": 0,
+                    "store_rows": len(self.store), "config_name": self.config_name,
+                    "config": config_to_dict(self.cfg), "objectives": "imprint"}
+            ckpt.save(self.state, self._models_tree(self.state), meta)
 
     def _check_cycles(self, cycles: int) -> None:
         """Refuse (before touching anything) to stop a run short of the cycles it already has:
