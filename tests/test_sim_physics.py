@@ -223,7 +223,7 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
     """Without object_hulls, evaluate decomposes each distinct volume once (coacd is slow) and a
     decomposition error fails only the candidates of that object."""
     from f2f_jax.errors import DecompositionError
-    from f2f_jax.sim import mujoco_cpu
+    from f2f_jax.geometry import hulls
 
     other = sphere_tsdf.copy()
     other[0, 0, 0] = 0.5  # a different volume, same shape
@@ -235,10 +235,11 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
             raise DecompositionError("object: coacd found nothing")
         return sphere_hulls
 
-    monkeypatch.setattr(mujoco_cpu, "make_object_hulls", fake_object_hulls)
+    monkeypatch.setattr(hulls, "object_hulls", fake_object_hulls)
     left, right = wsg50_fingers(tiny)
+    # one thread: decomposition stays in this process (with more, worker processes run coacd)
     out, info = evaluate([sphere_tsdf, other, sphere_tsdf], [left] * 3, [right] * 3, cfg=tiny,
-                         cache_dir=tmp_path, return_info=True, progress=False)
+                         cache_dir=tmp_path, return_info=True, progress=False, threads=1)
     assert calls == [tmp_path, tmp_path]
     assert info.failed.tolist() == [False, True, False]
     assert "coacd found nothing" in info.errors[1]

@@ -183,10 +183,11 @@ class CoTrainRun:
                    "test": len(self.test_idx), "store_rows": len(self.store),
                    "seconds": round(time.perf_counter() - start, 2)})
         rows = self._rows(lambda c, k: c == -1)
-        self.pre = rows  # the pretraining dataset: dict of arrays, float32 volumes
+        self.pre = rows  # the pretraining dataset: dict of arrays, float16 volumes (as stored)
 
     def _rows(self, select) -> dict[str, np.ndarray]:
-        """Store rows whose (cycle, kind) pass ``select``, volumes as float32."""
+        """Store rows whose (cycle, kind) pass ``select``; volumes float16 (the store's precision,
+        half the host memory of float32; batches are cast on their way to the device)."""
         meta = self.store.read(("cycle", "kind"))
         keep = np.flatnonzero([select(int(c), str(k)) for c, k in zip(meta["cycle"], meta["kind"])])
         if keep.size == 0:
@@ -195,7 +196,10 @@ class CoTrainRun:
         got = self.store.read(("object", "left", "right", "outcome", "kind", "name"),
                               start=int(keep[0]), stop=int(keep[-1]) + 1)
         local = keep - keep[0]
-        return {k: v[local] for k, v in got.items()}
+        out = {k: v[local] for k, v in got.items()}
+        for k in ("object", "left", "right"):
+            out[k] = out[k].astype(np.float16)  # exact: the store holds float16
+        return out
 
     def _baselines(self) -> None:
         """Imprint and WSG50 pairs on the held-out objects, simulated once into the store."""
@@ -342,16 +346,22 @@ class CoTrainRun:
             stats[part] = jax.tree.map(jnp.copy, self.state["ae"].batch_stats[part])
         self.state["gn"] = S.replicate(gn.replace(params=params, batch_stats=stats))
 
-    def _fn_batches(self, data: dict, idx_batches) -> "_Lazy":
-        return _Lazy(lambda i, b: S.shard(data["object"][b], data["left"][b], data["right"][b],
-                                          data["outcome"][b].astype(np.float32)), idx_batches)
+    def _fn_batches(self, *parts: dict, idx_batches) -> "_Lazy":
+        """Fitness batches; with several data dicts, ``idx_batches`` holds one index array per
+        dict for each batch, and the batch is their rows in that order (no full-set copies)."""
+        def make(i, idx):
+            idx = idx if len(parts) > 1 else (idx,)
+            cols = [np.concatenate([p[k][j] for p, j in zip(parts, idx)]).astype(np.float32)
+                    for k in ("object", "left", "right", "outcome")]
+            return S.shard(*cols)
+        return _Lazy(make, idx_batches)
 
     def fn_heldout_bce(self) -> float:
         """Fitness BCE on the held-out baseline triples (imprint and WSG50 on unseen objects)."""
         rows = self.heldout
         f = S.fn_eval(self.cfg)
-        loss, _ = f(self.state["fn"].variables, *S.shard(rows["object"], rows["left"], rows["right"],
-                                                        rows["outcome"].astype(np.float32)))
+        cols = [rows[k].astype(np.float32) for k in ("object", "left", "right", "outcome")]
+        loss, _ = f(self.state["fn"].variables, *S.shard(*cols))
         return float(loss)
 
     def pretrain_fn(self) -> None:
@@ -363,7 +373,7 @@ class CoTrainRun:
             if epoch == 1:
                 self._log({"stage": "fn", "epoch": 0, "heldout_bce": self.fn_heldout_bce()})
             rng = self._rng("fn", epoch)
-            batches = self._fn_batches(self.pre, self._batches(len(self.pre["outcome"]),
+            batches = self._fn_batches(self.pre, idx_batches=self._batches(len(self.pre["outcome"]),
                                                                t.fn_batch_size, rng))
             rec = self._epoch("fn", step, batches, epoch, desc=f"FN epoch {epoch}/{t.fn_epochs}")
             rec["heldout_bce"] = self.fn_heldout_bce()
@@ -381,7 +391,8 @@ class CoTrainRun:
             if self._done("gn", epoch):
                 continue
             rng = self._rng("gn", epoch)
-            batches = _Lazy(lambda i, b: S.shard(data["object"][b], data["left"][b], data["right"][b]),
+            batches = _Lazy(lambda i, b: S.shard(*(data[k][b].astype(np.float32)
+                                                   for k in ("object", "left", "right"))),
                             self._batches(len(data["object"]), t.fn_batch_size, rng))
             rec = self._epoch("gn", step, batches, epoch, desc=f"GN epoch {epoch}/{t.gn_epochs}")
             self._log(rec)
@@ -440,13 +451,11 @@ class CoTrainRun:
         half = max(1, t.cotrain_batch_size // 2)
         step = S.fn_step(self.cfg)
         fn_epochs = 0
-        mixed = {k: np.concatenate([new[k], self.pre[k]]) for k in ("object", "left", "right", "outcome")}
-        off = len(new["outcome"])
         for epoch in range(1, t.max_epochs + 1):
             rng = self._rng("cycle", c, 1, epoch)
             nb = self._batches(len(new["outcome"]), half, rng)
             ob = [rng.choice(len(self.pre["outcome"]), len(b)) for b in nb]
-            batches = self._fn_batches(mixed, [np.concatenate([a, b + off]) for a, b in zip(nb, ob)])
+            batches = self._fn_batches(new, self.pre, idx_batches=list(zip(nb, ob)))
             rec = self._epoch("fn", step, batches, epoch, c, desc=f"cycle {c} FN epoch {epoch}")
             self._log(rec)
             fn_epochs = epoch
