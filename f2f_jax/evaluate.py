@@ -174,19 +174,14 @@ def _postprocess(fingers: np.ndarray) -> np.ndarray:
 def models_designer(models, *, batch: int = 8) -> Designer:
     """A trained generator (``train.state.Models``): ``Models.generate`` then the largest
     connected component of each finger, as in training (an infeasible result stays infeasible
-    and scores 0).  batch: objects per call (padded, so one compiled shape)."""
+    and scores 0).  batch: objects per call (``train.steps.generate_batched``)."""
 
     def design(objects):
-        objs = _objects_array(objects)
-        lefts, rights = [], []
-        for s in range(0, len(objs), batch):
-            chunk = objs[s:s + batch]
-            pad = batch - len(chunk)
-            x = np.concatenate([chunk, np.repeat(chunk[-1:], pad, 0)]) if pad else chunk
-            left, right = models.generate(x)
-            lefts.append(np.asarray(left, np.float32)[: len(chunk)])
-            rights.append(np.asarray(right, np.float32)[: len(chunk)])
-        return _postprocess(np.concatenate(lefts)), _postprocess(np.concatenate(rights))
+        from f2f_jax.train.steps import generate_batched
+
+        lefts, rights = generate_batched(models.config.net, models.generator,
+                                         _objects_array(objects), batch)
+        return _postprocess(lefts), _postprocess(rights)
 
     return design
 

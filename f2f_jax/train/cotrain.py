@@ -45,7 +45,6 @@ from f2f_jax.geometry import imprint_fingers, is_feasible, wsg50_fingers
 from f2f_jax.train import steps as S
 from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
 from f2f_jax.train.state import (
-    Models,
     init_autoencoder,
     init_fitness,
     init_generator,
@@ -242,11 +241,6 @@ class CoTrainRun:
     def _models_tree(self, st: dict) -> dict:
         return {"generator": st["gn"].variables, "fitness": st["fn"].variables}
 
-    def models(self) -> Models:
-        return Models(config=self.cfg, generator=jax.device_get(self.state["gn"].variables),
-                      fitness=jax.device_get(self.state["fn"].variables),
-                      objectives=self.cfg.train.objectives, source=str(self.dir))
-
     def _save(self, stage: str, epoch: int, cycle: int, **extra) -> None:
         meta = {"stage": stage, "epoch": epoch, "cycle": cycle, "store_rows": len(self.store),
                 "config_name": self.config_name, "config": config_to_dict(self.cfg),
@@ -400,15 +394,8 @@ class CoTrainRun:
 
     def generate(self, objects: np.ndarray, batch: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Generated (lefts, rights, feasible) for object volumes, post-processed like design()."""
-        f = S.generate(self.cfg)
-        lefts, rights = [], []
-        for s in range(0, len(objects), batch):
-            chunk = objects[s:s + batch]
-            pad = batch - len(chunk) if len(objects) > batch else 0
-            x = np.concatenate([chunk, np.repeat(chunk[-1:], pad, 0)]) if pad else chunk
-            l, r = f(self.state["gn"].variables, S.shard(x))
-            lefts.append(np.asarray(l)[: len(chunk)]); rights.append(np.asarray(r)[: len(chunk)])
-        lefts, rights = np.concatenate(lefts)[:, None], np.concatenate(rights)[:, None]
+        lefts, rights = S.generate_batched(self.cfg.net, self.state["gn"].variables, objects, batch)
+        lefts, rights = lefts[:, None], rights[:, None]
         feasible = postprocess(lefts, rights, self.cfg.geometry)[:, 0]  # in place, as design() does
         return lefts[:, 0], rights[:, 0], feasible
 

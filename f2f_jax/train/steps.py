@@ -113,20 +113,6 @@ def ae_reconstruct(cfg: Config) -> Callable:
     return f
 
 
-@functools.lru_cache(maxsize=None)
-def encode_mean(cfg: Config) -> Callable:
-    """``f(encoder_variables, volumes [B,40,40,40]) -> mu [B, latent]`` (eval mode)."""
-    from f2f_jax.nets import ShapeEncoder
-
-    model = ShapeEncoder(cfg.net)
-
-    @jax.jit
-    def f(variables, x):
-        return model.apply(variables, x, train=False)[0]
-
-    return f
-
-
 # -- stage 2: fitness net ------------------------------------------------------------------------
 @functools.lru_cache(maxsize=None)
 def fn_step(cfg: Config) -> Step:
@@ -229,13 +215,21 @@ def gn_fitness_step(cfg: Config, objectives: str | None = None) -> Step:
     return step
 
 
-@functools.lru_cache(maxsize=None)
-def generate(cfg: Config) -> Callable:
-    """``f(generator_variables, objects) -> (lefts, rights)`` in evaluation mode."""
-    model = FingerGenerator(cfg.net)
+def generate_batched(net_cfg, variables: dict, objects: np.ndarray,
+                     batch: int = 32) -> tuple[np.ndarray, np.ndarray]:
+    """Generator output (evaluation mode) for any number of objects, ``batch`` at a time; when
+    there are several chunks the last is padded so every call has one compiled shape.
 
-    @jax.jit
-    def f(variables, obj):
-        return model.apply(variables, obj, train=False)
+    objects: [N, 40, 40, 40] float32. Returns lefts, rights: [N, 40, 40, 40] float32 numpy.
+    """
+    from f2f_jax.train.state import _generate
 
-    return f
+    lefts, rights = [], []
+    for s in range(0, len(objects), batch):
+        chunk = objects[s:s + batch]
+        pad = batch - len(chunk) if len(objects) > batch else 0
+        x = np.concatenate([chunk, np.repeat(chunk[-1:], pad, 0)]) if pad else chunk
+        left, right = _generate(net_cfg, variables, shard(np.asarray(x, np.float32)))
+        lefts.append(np.asarray(left, np.float32)[: len(chunk)])
+        rights.append(np.asarray(right, np.float32)[: len(chunk)])
+    return np.concatenate(lefts), np.concatenate(rights)
