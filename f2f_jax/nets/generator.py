@@ -104,8 +104,11 @@ class FingerGenerator(nn.Module):
         -------
         left, right: [B, 40, 40, 40] float32 finger TSDFs in (-1, 1), finger frame.
         """
-        left_z, right_z = self.latents(obj, train=train)
+        return self.decode(*self.latents(obj, train=train))
+
+    def decode(self, left_z: jax.Array, right_z: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Frozen decoder: finger latents [B, latent_dim] x2 -> finger TSDFs [B, 40, 40, 40] x2."""
         # one decoder call for both fingers: with frozen (running) statistics the batch mixes freely
         fingers = self.decoder(jnp.concatenate([left_z, right_z], axis=0), train=False)
-        n = obj.shape[0]
+        n = left_z.shape[0]
         return fingers[:n], fingers[n:]

@@ -191,26 +191,53 @@ def gn_imprint_step(cfg: Config) -> Step:
 # -- stage 4: generator against the fitness net ---------------------------------------------------
 @functools.lru_cache(maxsize=None)
 def gn_fitness_step(cfg: Config, objectives: str | None = None) -> Step:
-    """``step(state, fitness_variables, objects) -> (state, {"loss", "fitness" [11]})``;
-    loss = -mean sigmoid F over the selected outputs (``objectives``, default cfg.train's)."""
+    """The generator against a frozen fitness net.
+
+    ``step(state, fitness_variables, objects) -> (state, {"loss", "fitness" [11]})`` with
+    loss = -mean sigmoid F over the selected outputs (``objectives``, default cfg.train's).
+
+    With ``cfg.train.imprint_anchor`` > 0 the step takes the objects' imprint fingers too,
+    ``step(state, fitness_variables, objects, imprint_lefts, imprint_rights)``, and adds that weight
+    times the squared distance of the finger latents to the imprint fingers' latents (the
+    pretraining target): a trust region that keeps the designs where the decoder and the fitness
+    net have seen data.  Metrics then also hold "fitness_loss" and "anchor".
+    """
     model = FingerGenerator(cfg.net)
     fitness = FitnessNet(cfg.net)
     objectives = objectives or cfg.train.objectives
+    anchor = float(cfg.train.imprint_anchor)
 
-    def loss_fn(params, batch_stats, fit_vars, obj):
-        (left, right), upd = model.apply({"params": params, "batch_stats": batch_stats}, obj,
-                                         train=True, mutable=["batch_stats"])
+    def encode(m, x):
+        return jax.lax.stop_gradient(m.encoder(x, train=False)[0])
+
+    def loss_fn(params, batch_stats, fit_vars, obj, *imprints):
+        variables = {"params": params, "batch_stats": batch_stats}
+        (zl, zr), upd = model.apply(variables, obj, train=True, method=FingerGenerator.latents,
+                                    mutable=["batch_stats"])
+        left, right = model.apply(variables, zl, zr, method=FingerGenerator.decode)
         logits = fitness.apply(fit_vars, fitness_input(obj, left, right), train=False)
-        return generator_loss(logits, objectives), (upd["batch_stats"], jax.nn.sigmoid(logits))
+        fit_loss = generator_loss(logits, objectives)
+        aux = {"fitness": jnp.mean(jax.nn.sigmoid(logits), 0)}
+        loss = fit_loss
+        if anchor:
+            tl = model.apply(variables, imprints[0], method=encode)
+            tr = model.apply(variables, imprints[1], method=encode)
+            dist = imprint_latent_loss(jnp.concatenate([zl, zr], 1), jnp.concatenate([tl, tr], 1))
+            loss = fit_loss + anchor * dist
+            aux.update(fitness_loss=fit_loss, anchor=dist)
+        return loss, (upd["batch_stats"], aux)
 
     opt = generator_optimizer(cfg)
 
     @functools.partial(jax.jit, donate_argnums=0)
-    def step(state: TrainState, fit_vars, obj):
-        (loss, (stats, prob)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            state.params, state.batch_stats, fit_vars, obj)
+    def step(state: TrainState, fit_vars, obj, *imprints):
+        if bool(anchor) != (len(imprints) == 2):
+            raise TypeError(f"gn_fitness_step: imprint_anchor={anchor} takes "
+                            f"{'the imprint lefts and rights' if anchor else 'no imprint fingers'}")
+        (loss, (stats, aux)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
+            state.params, state.batch_stats, fit_vars, obj, *imprints)
         new = _apply_grads(opt, state, grads, _merge_stats(state.batch_stats, stats))
-        return new, {"loss": loss, "fitness": jnp.mean(prob, 0)}
+        return new, {"loss": loss, **aux}
 
     return step
 
