@@ -24,7 +24,6 @@ from f2f_jax.geometry.hulls import (
     mesh_hulls,
     object_hulls,
     pad_hulls,
-    points_in_hulls,
     reduce_pieces,
     reduce_vertices,
     stack_hulls,
