@@ -2,6 +2,8 @@
 
     python experiments/cotrain.py --cycles 20                  # CPU-sized default, built-in objects
     python experiments/cotrain.py --config paper --objects ~/shapenet --run-dir runs/paper
+    python experiments/cotrain.py --cycles 20 --objectives GS --from-pretrained runs/cotrain \
+        --run-dir runs/cotrain-GS                                # an ablation on the same pretraining
 
 Kill it at any moment and rerun the same command: it resumes from the last complete checkpoint
 (and the grasp store keeps every finished simulation).  The run directory holds the object set,
@@ -61,6 +63,12 @@ def main(argv=None) -> int:
                    help="simulator (default: mjx on an accelerator, mujoco on a CPU)")
     p.add_argument("--objectives", choices=["GS", "GS+R", "GS+S", "full"], default=None,
                    help="fitness outputs the generator maximises (Table 1 ablations)")
+    p.add_argument("--imprint-anchor", type=float, default=None, metavar="W",
+                   help="weight of the generator's latent distance to the imprint fingers during "
+                        "co-training (default: the config's; 0 = the paper's loss)")
+    p.add_argument("--from-pretrained", metavar="RUN_DIR", default=None,
+                   help="start the cycles from another run's pretraining (objects, dataset, models); "
+                        "only co-training settings (--objectives, --imprint-anchor) may differ")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
@@ -96,6 +104,10 @@ def main(argv=None) -> int:
         changes["n_objects"] = args.n_objects
     if args.objectives is not None:
         changes["objectives"] = args.objectives
+    if args.imprint_anchor is not None:
+        if not args.imprint_anchor >= 0:
+            return fail(f"--imprint-anchor must be >= 0, got {args.imprint_anchor}")
+        changes["imprint_anchor"] = args.imprint_anchor
     if args.seed is not None:
         if args.seed < 0:
             return fail(f"--seed must be >= 0, got {args.seed}")
@@ -111,6 +123,13 @@ def main(argv=None) -> int:
     try:
         run = CoTrainRun(args.run_dir, cfg, config_name=args.config, objects=args.objects,
                          backend=backend, progress=not args.quiet)
+        if args.from_pretrained:
+            src = str(Path(args.from_pretrained).resolve())
+            meta = Path(args.run_dir) / "run.json"
+            if not meta.exists():
+                run.fork_pretrained(src)
+            elif json.loads(meta.read_text()).get("pretrained_from") != src:
+                return fail(f"{args.run_dir} was not started from {src}; choose another --run-dir")
         summary = run.run(cfg.train.cycles)
     except (F2FError, ValueError) as exc:  # ValueError: an object set made from other settings
         return fail(str(exc))

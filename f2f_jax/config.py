@@ -164,6 +164,13 @@ class TrainConfig:
     # the fitness net overrated and held-out grasp success fell from 0.77 to 0.59 in 9 cycles.
     generator_lr: float | None = None
     objectives: str = "full"  # generator objective: "GS", "GS+R", "GS+S" or "full" (Table 1)
+    # Co-training trains the nets only once this many designs have been simulated (the original
+    # code's cotrain_warmup_datapoints: 2048, four cycles of 512); the fitness net refits on all
+    # designs simulated so far, half of each batch, the other half pretraining rows (as the original).
+    warmup_designs: int = 2048
+    # Weight of the squared latent distance to the imprint fingers in the generator's co-training
+    # loss (0: the paper's -mean F alone); see steps.gn_fitness_step.
+    imprint_anchor: float = 0.0
     # --- the run's data (experiments/cotrain.py) ---
     n_objects: int = 1000  # built-in objects made when no --objects directory is given
     test_fraction: float = 0.2  # held-out share of the objects (fixed split by name hash)
@@ -206,7 +213,7 @@ def default() -> Config:
         train=dataclasses.replace(
             base.train, lr=1e-3, generator_lr=1e-4, ae_epochs=40, ae_batch_size=32, fn_epochs=10, fn_batch_size=32,
             gn_epochs=20, objects_per_cycle=32, cotrain_batch_size=32, min_epochs=2, max_epochs=6,
-            max_steps_per_epoch=8, n_objects=64, eval_objects=16, cut_pairs=1,
+            max_steps_per_epoch=8, n_objects=64, eval_objects=16, cut_pairs=1, warmup_designs=64,
         ),
     )
 
@@ -228,7 +235,7 @@ def tiny() -> Config:
         train=dataclasses.replace(
             base.train, lr=1e-3, ae_epochs=2, fn_epochs=3, gn_epochs=2, cycles=3, objects_per_cycle=16,
             ae_batch_size=8, fn_batch_size=8, cotrain_batch_size=8, min_epochs=1, max_epochs=3,
-            max_steps_per_epoch=4, n_objects=16, eval_objects=4, cut_pairs=1,
+            max_steps_per_epoch=4, n_objects=16, eval_objects=4, cut_pairs=1, warmup_designs=32,
         ),
     )
 

@@ -118,6 +118,10 @@ def test_fitness_net_learns_and_run_reports(uninterrupted):
     assert any(not np.array_equal(a, b) for a, b in zip(jax.tree.leaves(imp_gn.generator["params"]),
                                                       jax.tree.leaves(final.generator["params"])))
     assert (run_dir / "curves.png").stat().st_size > 10_000
+    # the nets train once warmup_designs designs were simulated (2 tiny cycles), on all of them
+    cyc = {r["cycle"]: r for r in log if r.get("stage") == "cycle"}
+    assert cyc[1]["fn_epochs"] == cyc[1]["gn_epochs"] == 0 and cyc[1]["designs_so_far"] == 16
+    assert cyc[2]["fn_epochs"] > 0 and cyc[2]["gn_epochs"] > 0 and cyc[3]["designs_so_far"] == 48
     for r in log:
         if "loss" in r:
             assert np.isfinite(r["loss"])
@@ -187,3 +191,41 @@ def test_nan_loss_names_the_step():
 def test_config_round_trips_through_checkpoint_json(name):
     cfg = config.get(name)
     assert config_from_dict(json.loads(json.dumps(config_to_dict(cfg)))) == cfg
+
+
+def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, capsys):
+    """--from-pretrained: the cycles of a GS run with the imprint anchor start from the whole run's
+    pretrained models and data, without the whole run's designs; other settings are refused."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    try:
+        import cotrain as cli
+    finally:
+        sys.path.pop(0)
+    src, _ = uninterrupted
+    run_dir = tmp_path / "gs"
+    args = ["--config", "tiny", "--quiet", "--cycles", "2", "--objectives", "GS", "--imprint-anchor", "1",
+            "--from-pretrained", str(src), "--run-dir", str(run_dir)]
+    assert cli.main(args) == 0, capsys.readouterr().err
+    from f2f_jax.data.store import GraspStore
+
+    src_rows = GraspStore(src / "store").read(("cycle",))["cycle"]
+    rows = GraspStore(run_dir / "store").read(("cycle",))["cycle"]
+    assert (rows < 0).sum() == (src_rows < 0).sum() and (rows == 1).sum() == (rows == 2).sum() == 16
+    log = _log(run_dir)
+    assert sum(r.get("stage") == "ae" and r.get("epoch") == 1 for r in log) == 1  # copied, not rerun
+    gs = [r for r in log if r.get("stage") == "gn" and r.get("cycle") == 2]
+    assert gs and {"fitness_loss", "anchor"} <= gs[0].keys()
+    a, b = load_models(src / "pretrained"), load_models(run_dir / "pretrained")
+    for x, y in zip(jax.tree.leaves(a.generator), jax.tree.leaves(b.generator)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert load_models(run_dir).objectives == "GS"
+    assert _summary(run_dir)["success"]["generator, cycle 0"] == _summary(src)["success"]["generator, cycle 0"]
+    # the same command resumes it; a run of other pretraining settings, or a used directory, is refused
+    assert cli.main(args) == 0
+    assert cli.main([*args[:-1], str(tmp_path / "other"), "--seed", "3"]) == 2
+    assert "pretrained with other settings (train.seed)" in capsys.readouterr().err
+    assert not (tmp_path / "other").exists()
+    (tmp_path / "used").mkdir()
+    (tmp_path / "used" / "x").write_text("x")
+    assert cli.main([*args[:-1], str(tmp_path / "used")]) == 2
+    assert "not empty" in capsys.readouterr().err

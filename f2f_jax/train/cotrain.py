@@ -29,6 +29,7 @@ import dataclasses
 import json
 import logging
 import math
+import os
 import time
 from pathlib import Path
 
@@ -55,6 +56,11 @@ from f2f_jax.train.state import (
 log = logging.getLogger(__name__)
 
 STAGES = ("ae", "fn", "gn", "cycle")
+# Settings that only change the co-training cycles: runs that differ in nothing else can share one
+# pretraining (``CoTrainRun.fork_pretrained``), as the paper's ablations do.
+COTRAIN_FIELDS = ("cycles", "objectives", "imprint_anchor", "generator_lr", "warmup_designs",
+                  "objects_per_cycle", "cotrain_batch_size", "fn_target_loss", "gn_target_loss",
+                  "min_epochs", "max_epochs")
 _STAGE_ID = {"ae": 1, "fn": 2, "gn": 3, "cycle": 4, "eval": 5}
 BASELINES = ("imprint", "wsg50")
 
@@ -147,6 +153,71 @@ class CoTrainRun:
     def _rng(self, stage: str, *counters: int) -> np.random.Generator:
         return np.random.default_rng([self.seed, _STAGE_ID[stage], *counters])
 
+    def fork_pretrained(self, source) -> None:
+        """Start this run, in a new directory, from the end of another run's pretraining.
+
+        Takes the source's objects, pretraining rows and held-out baselines, its pretrained models
+        (``source/pretrained``) and their cycle-0 evaluation; the configs may differ only in
+        ``COTRAIN_FIELDS`` (the objectives of the Table 1 ablations, the imprint anchor, ...).
+        Everything is staged in a hidden sibling directory and renamed into place at the end.
+        """
+        import shutil
+
+        from f2f_jax.data.store import GraspStore
+
+        src = Path(source)
+        if self.dir.exists() and any(self.dir.iterdir()):
+            raise CheckpointError(f"{self.dir} is not empty; a run started from {src} needs a new "
+                                  "--run-dir")
+        if not (src / "run.json").exists() or not (src / "pretrained" / "checkpoints").is_dir():
+            raise CheckpointError(f"{src} holds no finished pretraining (no run.json or pretrained/); "
+                                  f"make one with: python experiments/cotrain.py --run-dir {src} --cycles 1")
+        old, new = json.loads((src / "run.json").read_text()), self._run_meta()
+        differ = [f"{part}.{k}" for part in new["config"] for k in new["config"][part]
+                  if not (part == "train" and k in COTRAIN_FIELDS)
+                  and old["config"].get(part, {}).get(k) != new["config"][part][k]]
+        differ += [k for k in ("objects", "backend") if old.get(k) != new[k]]
+        if differ:
+            raise CheckpointError(f"{src} was pretrained with other settings ({', '.join(differ)}); "
+                                  "only co-training settings may differ from the run it starts from")
+        chunks = [c for c in GraspStore(src / "store").chunks()]
+        pre = []
+        for c in chunks:  # the pretraining rows and baselines come before any cycle's designs
+            if int(GraspStore._max_cycle(c.path)) >= 1:
+                break
+            pre.append(c)
+        stage = self.dir.with_name(f".{self.dir.name}.fork-{os.getpid()}")
+        try:
+            shutil.rmtree(stage, ignore_errors=True)
+            (stage / "store").mkdir(parents=True)
+            shutil.copytree(src / "objects", stage / "objects")
+            for c in pre:
+                shutil.copy2(c.path, stage / "store" / c.path.name)
+            shutil.copytree(src / "pretrained", stage / "pretrained")
+            shutil.copytree(src / "pretrained" / "checkpoints", stage / "checkpoints")
+            if (src / "eval-cycle0.json").exists():
+                shutil.copy2(src / "eval-cycle0.json", stage / "eval-cycle0.json")
+            keep = []  # the pretraining part of the source's log
+            for line in (src / "log.jsonl").read_text().splitlines():
+                try:
+                    r = json.loads(line)
+                except json.JSONDecodeError:
+                    continue
+                pretraining = r.get("stage") != "cycle" and r.get("cycle", 0) == 0
+                if pretraining and r.get("label", "cycle 0") == "cycle 0":
+                    keep.append(line + "\n")
+            (stage / "log.jsonl").write_text("".join(keep))
+            meta = {**new, "pretrained_from": str(src.resolve())}
+            (stage / "run.json").write_text(json.dumps(meta, indent=1))
+            self.dir.parent.mkdir(parents=True, exist_ok=True)
+            if self.dir.exists():
+                self.dir.rmdir()  # empty (checked above)
+            os.replace(stage, self.dir)
+        except BaseException:
+            shutil.rmtree(stage, ignore_errors=True)
+            raise
+        print(f"{self.dir}: starts from the pretraining of {src}", flush=True)
+
     # -- data -----------------------------------------------------------------------------------
     def prepare_data(self) -> None:
         """Objects, split, the grasp dataset and the held-out baselines (each resumable)."""
@@ -190,9 +261,10 @@ class CoTrainRun:
         meta = self.store.read(("cycle", "kind"))
         keep = np.flatnonzero([select(int(c), str(k)) for c, k in zip(meta["cycle"], meta["kind"])])
         if keep.size == 0:
-            return {f: np.zeros((0,), np.float32) for f in ("object", "left", "right", "outcome", "kind")}
+            return {f: np.zeros((0,), np.float32)
+                    for f in ("object", "left", "right", "outcome", "kind", "name", "cycle")}
         # rows of one selection are contiguous chunks in practice; read the covering range once
-        got = self.store.read(("object", "left", "right", "outcome", "kind", "name"),
+        got = self.store.read(("object", "left", "right", "outcome", "kind", "name", "cycle"),
                               start=int(keep[0]), stop=int(keep[-1]) + 1)
         local = keep - keep[0]
         out = {k: v[local] for k, v in got.items()}
@@ -417,6 +489,26 @@ class CoTrainRun:
             return self.cfg
         return self.cfg.replace(train=dataclasses.replace(t, lr=t.generator_lr))
 
+    def _generated(self, c: int) -> dict[str, np.ndarray]:
+        """Every design simulated in cycles 1..c (the original's co-training dataset), read back
+        from the store (float16, as on a resume) and kept between cycles."""
+        got = getattr(self, "_gen", None)
+        if got is not None and got[0] == c - 1 and len(got[1]["outcome"]):
+            new = self._rows(lambda cyc, k: cyc == c)
+            rows = {k: np.concatenate([got[1][k], v]) for k, v in new.items()}
+        else:
+            rows = self._rows(lambda cyc, k: 1 <= cyc <= c)
+        self._gen = (c, rows)
+        return rows
+
+    def _imprints(self, obj_idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The imprint fingers (pretraining rows) of training objects, by object index."""
+        if not hasattr(self, "_imprint_row"):
+            rows = np.flatnonzero(self.pre["kind"] == "imprint")
+            self._imprint_row = {str(self.pre["name"][r]): r for r in rows}
+        r = np.array([self._imprint_row[self.names[i]] for i in obj_idx])
+        return self.pre["left"][r].astype(np.float32), self.pre["right"][r].astype(np.float32)
+
     def run_cycle(self, c: int) -> dict:
         t = self.cfg.train
         start = time.perf_counter()
@@ -430,38 +522,46 @@ class CoTrainRun:
             out = self._simulate(objs, lefts, rights, f"cycle {c} designs")
             self.store.append(objs, lefts, rights, out, kind="generated",
                               names=[self.names[i] for i in pick], keys=[key], cycle=c)
-        new = self._rows(lambda cyc, k: cyc == c)  # read back (float16-rounded, as on a resume)
+        gen = self._generated(c)
+        new = {k: v[gen["cycle"] == c] for k, v in gen.items()}
         g = self.cfg.geometry
         feasible = np.array([is_feasible(a, g) and is_feasible(b, g) for a, b in zip(new["left"], new["right"])])
         sim_seconds = time.perf_counter() - start
-        # refit the fitness net on balanced batches: half this cycle's rows, half pretraining rows
+        fn_epochs = gn_epochs = 0
+        warm = len(gen["outcome"]) >= t.warmup_designs
+        # refit the fitness net on balanced batches: half designs of all cycles so far, half
+        # pretraining rows; then train the generator against it (both after the warm-up)
         half = max(1, t.cotrain_batch_size // 2)
         step = S.fn_step(self.cfg)
-        fn_epochs = 0
-        for epoch in range(1, t.max_epochs + 1):
+        for epoch in range(1, t.max_epochs + 1 if warm else 1):
             rng = self._rng("cycle", c, 1, epoch)
-            nb = self._batches(len(new["outcome"]), half, rng)
+            nb = self._batches(len(gen["outcome"]), half, rng)
             ob = [rng.choice(len(self.pre["outcome"]), len(b)) for b in nb]
-            batches = self._fn_batches(new, self.pre, idx_batches=list(zip(nb, ob)))
+            batches = self._fn_batches(gen, self.pre, idx_batches=list(zip(nb, ob)))
             rec = self._epoch("fn", step, batches, epoch, c, desc=f"cycle {c} FN epoch {epoch}")
             self._log(rec)
             fn_epochs = epoch
             if epoch >= t.min_epochs and rec["loss"] < t.fn_target_loss:
                 break
-        # train the generator against the refitted fitness net
         gstep = S.gn_fitness_step(self._cycle_cfg())
         fit_vars = self.state["fn"].variables
-        gn_epochs = 0
-        for epoch in range(1, t.max_epochs + 1):
+
+        def gn_batch(i, b):
+            idx = self.train_idx[b]
+            arrays = (self.objects[idx], *(self._imprints(idx) if t.imprint_anchor else ()))
+            put = S.shard(*arrays)
+            return (fit_vars, *(put if len(arrays) > 1 else (put,)))
+
+        for epoch in range(1, t.max_epochs + 1 if warm else 1):
             rng = self._rng("cycle", c, 2, epoch)
-            batches = _Lazy(lambda i, b: (fit_vars, S.shard(self.objects[self.train_idx[b]])),
-                            self._batches(len(self.train_idx), t.cotrain_batch_size, rng))
+            batches = _Lazy(gn_batch, self._batches(len(self.train_idx), t.cotrain_batch_size, rng))
             rec = self._epoch("gn", gstep, batches, epoch, c, desc=f"cycle {c} GN epoch {epoch}")
             self._log(rec)
             gn_epochs = epoch
-            if epoch >= t.min_epochs and rec["loss"] < t.gn_target_loss:
+            if epoch >= t.min_epochs and rec.get("fitness_loss", rec["loss"]) < t.gn_target_loss:
                 break
         summary = {"stage": "cycle", "cycle": c, "designs": len(new["outcome"]),
+                   "designs_so_far": len(gen["outcome"]),
                    "feasible": float(feasible.mean()) if len(feasible) else 0.0,
                    "success": new["outcome"].mean(0).round(4).tolist(), "fn_epochs": fn_epochs,
                    "gn_epochs": gn_epochs, "sim_seconds": round(sim_seconds, 2),
