@@ -190,7 +190,8 @@ def main(argv=None) -> int:
                     name = f"Fit2Form + search ({k}, verify)"
                     designers[name] = E.pair_designer(
                         lambda objs, k=k: design(objs, params=models, candidates=k, verify=True,
-                                                 backend=args.backend),
+                                                 backend=args.backend,
+                                                 progress=False if args.quiet else None),
                         batched=True, desc=name)
                     table2_rows.append(name)
     elif args.design_search:

@@ -149,7 +149,7 @@ class FingerPair:
 
 def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int = 1,
            verify: bool = False, backend: str = "mujoco", run_dir=None,
-           noise: float = LATENT_NOISE):
+           noise: float = LATENT_NOISE, progress: bool | None = None):
     """Design a finger pair for each object.
 
     obj_tsdf: [40, 40, 40] float32 object TSDF (negative inside) -> FingerPair, or a batch
@@ -161,6 +161,7 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
     verify: simulate the feasible candidates (one ``sim.evaluate`` call with ``backend``) and rank
         by simulated outcome first.
     noise: standard deviation of the latent noise (latent units; the latents span [-1, 1]).
+    progress: the simulation's progress bar with ``verify`` (None: ``sim.evaluate``'s default).
 
     Raises VolumeError for a wrong shape, NaN/inf values or an empty or all-inside volume (naming
     the batch index), ValueError for bad options, CheckpointError (an F2FError) when params is
@@ -188,7 +189,8 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
     if not np.all(np.isfinite(predicted)):
         raise F2FError(f"the fitness net of {models.source or 'these models'} predicted NaN/inf; "
                        "the checkpoint is broken")
-    simulated = _simulate(models, objects, lefts, rights, feasible, backend) if verify else None
+    simulated = (_simulate(models, objects, lefts, rights, feasible, backend, progress)
+                 if verify else None)
     best = rank_candidates(feasible, predicted, simulated)[:, 0]
 
     hopeless = np.nonzero(~feasible.any(axis=1))[0]
@@ -302,7 +304,7 @@ def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
                       f"got shape {arr.shape}")
 
 
-def _simulate(models, objects, lefts, rights, feasible, backend) -> np.ndarray:
+def _simulate(models, objects, lefts, rights, feasible, backend, progress=None) -> np.ndarray:
     """Simulated outcomes [B, K, 11] uint8: the feasible candidates in one evaluate call, zeros
     for the rest (an infeasible finger scores all 0 by the protocol)."""
     from f2f_jax.sim import evaluate
@@ -312,7 +314,7 @@ def _simulate(models, objects, lefts, rights, feasible, backend) -> np.ndarray:
     ib, ik = np.nonzero(feasible)
     if len(ib):
         out[ib, ik] = evaluate(objects[ib], lefts[ib, ik], rights[ib, ik], backend=backend,
-                               cfg=models.config)
+                               cfg=models.config, progress=progress)
     return out
 
 
