@@ -13,10 +13,11 @@ where it stopped and ends with the same parameters as one that was never stopped
 3. ``ae``: the shape VAE on every object and finger volume (``ae_epochs``).
 4. ``fn``: the fitness net on the grasp dataset (``fn_epochs``).
 5. ``gn``: the generator's embedding net regressed onto the imprint fingers' latents (``gn_epochs``).
-6. ``cycle`` 1..N: sample training objects, generate fingers, simulate the feasible ones, append to
-   the store; refit the fitness net on balanced batches (half this cycle's rows, half the
-   pretraining data) until its BCE < ``fn_target_loss`` (``min_epochs``..``max_epochs``); train the
-   generator against it until its loss < ``gn_target_loss``.
+6. ``cycle`` 1..N: sample training objects, generate fingers, simulate them, append to the store;
+   once ``warmup_designs`` designs exist, refit the fitness net on balanced batches (half designs
+   of every cycle so far, half the pretraining data) until its BCE < ``fn_target_loss``
+   (``min_epochs``..``max_epochs``) and train the generator against it until its loss <
+   ``gn_target_loss`` (plus ``imprint_anchor`` x the latent distance to the imprint fingers).
 
 Every source of randomness is derived from (seed, stage, cycle, epoch), never from how far an
 earlier process got, which is what makes resuming exact.  Each epoch appends a JSON line to
@@ -506,6 +507,10 @@ class CoTrainRun:
         if not hasattr(self, "_imprint_row"):
             rows = np.flatnonzero(self.pre["kind"] == "imprint")
             self._imprint_row = {str(self.pre["name"][r]): r for r in rows}
+        missing = [self.names[i] for i in obj_idx if self.names[i] not in self._imprint_row]
+        if missing:
+            raise F2FError(f"no imprint fingers for {missing[:3]} in the pretraining data: "
+                           "--imprint-anchor needs every training object's imprint pair")
         r = np.array([self._imprint_row[self.names[i]] for i in obj_idx])
         return self.pre["left"][r].astype(np.float32), self.pre["right"][r].astype(np.float32)
 
