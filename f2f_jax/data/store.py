@@ -132,13 +132,6 @@ class GraspStore:
         self._cache = None
         return self.chunks()[-1]
 
-    @staticmethod
-    def _max_cycle(path) -> int:
-        """The largest ``cycle`` label of one chunk file's rows."""
-        with h5py.File(path, "r") as f:
-            cyc = f["cycle"][()]
-        return int(cyc.max()) if cyc.size else -1
-
     def clean_temporary(self) -> int:
         """Delete leftovers of killed writes; returns how many."""
         if not self.root.is_dir():

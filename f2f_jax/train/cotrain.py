@@ -181,12 +181,13 @@ class CoTrainRun:
         if differ:
             raise CheckpointError(f"{src} was pretrained with other settings ({', '.join(differ)}); "
                                   "only co-training settings may differ from the run it starts from")
-        chunks = [c for c in GraspStore(src / "store").chunks()]
-        pre = []
-        for c in chunks:  # the pretraining rows and baselines come before any cycle's designs
-            if int(GraspStore._max_cycle(c.path)) >= 1:
-                break
-            pre.append(c)
+        # the pretraining rows and baselines come before any cycle's designs: take the chunks
+        # that end before the first designed row
+        store = GraspStore(src / "store")
+        cycles = store.read(("cycle",))["cycle"]
+        first = int(np.argmax(cycles >= 1)) if (cycles >= 1).any() else len(cycles)
+        ends = np.cumsum([c.rows for c in store.chunks()])
+        pre = [c for c, end in zip(store.chunks(), ends) if end <= first]
         stage = self.dir.with_name(f".{self.dir.name}.fork-{os.getpid()}")
         try:
             shutil.rmtree(stage, ignore_errors=True)

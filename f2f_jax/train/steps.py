@@ -159,23 +159,28 @@ def generator_optimizer(cfg: Config) -> optax.GradientTransformation:
     return optax.multi_transform({"train": opt, "freeze": optax.set_to_zero()}, labels)
 
 
+def _imprint_distance(model: FingerGenerator, variables, zl, zr, left, right) -> jax.Array:
+    """Latent MSE between the embedding's finger latents (zl, zr) and the frozen encoder's means of
+    the imprint fingers (left, right): the generator's pretraining loss and its co-training anchor."""
+    def encode(m, x):
+        return jax.lax.stop_gradient(m.encoder(x, train=False)[0])
+
+    tl = model.apply(variables, left, method=encode)
+    tr = model.apply(variables, right, method=encode)
+    return imprint_latent_loss(jnp.concatenate([zl, zr], 1), jnp.concatenate([tl, tr], 1))
+
+
 @functools.lru_cache(maxsize=None)
 def gn_imprint_step(cfg: Config) -> Step:
     """``step(state, objects, imprint_lefts, imprint_rights) -> (state, {"loss"})``: MSE between
     the embedding's finger latents and the frozen encoder's latents of the imprint fingers."""
     model = FingerGenerator(cfg.net)
 
-    def encode(m, x):
-        return jax.lax.stop_gradient(m.encoder(x, train=False)[0])
-
     def loss_fn(params, batch_stats, obj, left, right):
         variables = {"params": params, "batch_stats": batch_stats}
         (zl, zr), upd = model.apply(variables, obj, train=True, method=FingerGenerator.latents,
                                     mutable=["batch_stats"])
-        tl = model.apply(variables, left, method=encode)
-        tr = model.apply(variables, right, method=encode)
-        loss = imprint_latent_loss(jnp.concatenate([zl, zr], 1), jnp.concatenate([tl, tr], 1))
-        return loss, upd["batch_stats"]
+        return _imprint_distance(model, variables, zl, zr, left, right), upd["batch_stats"]
 
     opt = generator_optimizer(cfg)
 
@@ -207,9 +212,6 @@ def gn_fitness_step(cfg: Config, objectives: str | None = None) -> Step:
     objectives = objectives or cfg.train.objectives
     anchor = float(cfg.train.imprint_anchor)
 
-    def encode(m, x):
-        return jax.lax.stop_gradient(m.encoder(x, train=False)[0])
-
     def loss_fn(params, batch_stats, fit_vars, obj, *imprints):
         variables = {"params": params, "batch_stats": batch_stats}
         (zl, zr), upd = model.apply(variables, obj, train=True, method=FingerGenerator.latents,
@@ -220,9 +222,7 @@ def gn_fitness_step(cfg: Config, objectives: str | None = None) -> Step:
         aux = {"fitness": jnp.mean(jax.nn.sigmoid(logits), 0)}
         loss = fit_loss
         if anchor:
-            tl = model.apply(variables, imprints[0], method=encode)
-            tr = model.apply(variables, imprints[1], method=encode)
-            dist = imprint_latent_loss(jnp.concatenate([zl, zr], 1), jnp.concatenate([tl, tr], 1))
+            dist = _imprint_distance(model, variables, zl, zr, *imprints)
             loss = fit_loss + anchor * dist
             aux.update(fitness_loss=fit_loss, anchor=dist)
         return loss, (upd["batch_stats"], aux)
