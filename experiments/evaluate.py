@@ -100,6 +100,9 @@ def main(argv=None) -> int:
                    help="tiny | default | paper: the simulator settings (default: the run's, else default)")
     p.add_argument("--design-search", type=int, default=None, metavar="K",
                    help="add the row 'Fit2Form + search (K, verify)': f2f_jax.design with K candidates")
+    p.add_argument("--fitness-ranking", type=int, default=None, metavar="K",
+                   help="also measure how well the fitness net ranks K candidate designs per "
+                        "object (all simulated): within-object Spearman, its pick vs the best")
     p.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco")
     p.add_argument("--randemb-steps", type=int, default=200,
                    help="RandEmb+FN optimisation steps (paper: 200)")
@@ -125,6 +128,8 @@ def main(argv=None) -> int:
         return _fail("--randemb-steps must be >= 0 and --randemb-samples >= 1")
     if args.design_search is not None and args.design_search < 1:
         return _fail("--design-search K needs K >= 1")
+    if args.fitness_ranking is not None and args.fitness_ranking < 2:
+        return _fail("--fitness-ranking K needs K >= 2 candidates to rank")
     extras = []
     for item in args.extra:
         name, sep, path = item.partition("=")
@@ -196,6 +201,9 @@ def main(argv=None) -> int:
                     table2_rows.append(name)
     elif args.design_search:
         _say("--design-search needs --run-dir with a checkpoint: skipping that row")
+    ranked = models if run_dir is not None and args.fitness_ranking else None
+    if args.fitness_ranking and ranked is None:
+        _say("--fitness-ranking needs --run-dir with a checkpoint: skipped")
     for name, path in extras:
         models_x, why = _load_models(path)
         if models_x is None:
@@ -239,6 +247,18 @@ def main(argv=None) -> int:
                                        for k, v in t2.outcomes.items()},
                              "files": {k: str(v) for k, v in t2.write(out_dir, "table2").items()}}
         printed.append(t2.to_markdown())
+    if ranked is not None:
+        _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
+        rk = E.fitness_ranking(ranked, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
+                               backend=args.backend, object_hulls=hulls, progress=progress)
+        results["fitness_ranking"] = rk
+        printed.append(
+            f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "
+            f"within-object Spearman {rk['spearman']:.2f} ({rk['objects_ranked']} objects with "
+            f"differing candidates), grasp AUC {rk['grasp_auc']:.2f}; trials passed of 11: "
+            f"generator's own {rk['trials_first']:.2f}, average candidate {rk['trials_mean']:.2f}, "
+            f"fitness net's pick {rk['trials_picked']:.2f}, best {rk['trials_best']:.2f}, "
+            f"worst {rk['trials_worst']:.2f}")
     results["seconds"] = round(time.perf_counter() - start, 1)
 
     from f2f_jax.fileio import atomic_path

@@ -675,3 +675,90 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
                  feasible=feasible, outcomes=outcomes, n_objects=len(objs), paper=PAPER_TABLE2,
                  design_seconds={k: d.seconds for k, d in designs.items()}, sim_seconds=seconds,
                  notes=notes)
+
+
+# --------------------------------------------------------------------------------------------
+# Does the fitness net rank the designs of one object?
+# --------------------------------------------------------------------------------------------
+
+def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, float]:
+    """How well predicted success ranks several candidate designs of the same objects.
+
+    predicted: [N, K, 11] fitness-net probabilities; simulated: [N, K, 11] 0/1 outcomes of the
+    same candidates.  A candidate's score is its mean predicted probability, its value the number
+    of trials it passed.  Returns:
+
+    - ``spearman``: Spearman rank correlation of score and value within each object, averaged over
+      the objects whose candidates differ in value (nan when none do); ``objects_ranked`` counts them.
+    - ``trials_first``, ``trials_mean``, ``trials_picked``, ``trials_best``, ``trials_worst``:
+      trials passed (of 11) by candidate 0, by the average candidate, by the one the fitness net
+      scores highest, by the best and the worst simulated one (means over objects).
+    - ``grasp_auc``: AUC of the predicted grasp probability for the simulated grasp over all
+      N x K candidates pooled (nan when every grasp succeeded or every one failed); it rewards
+      telling easy objects from hard ones too, which ``spearman`` does not.
+
+    The gap between ``trials_picked`` and ``trials_mean`` is what the fitness net's guidance is
+    worth to a generator that climbs it; ``trials_best`` - ``trials_first`` is the room there is.
+    """
+    from scipy.stats import rankdata
+
+    p = np.asarray(predicted, np.float64)
+    s = np.asarray(simulated, np.float64)
+    if p.shape != s.shape or p.ndim != 3:
+        raise ValueError(f"predicted {p.shape} and simulated {s.shape}: expected two [N, K, 11] arrays")
+    score, value = p.mean(-1), s.sum(-1)
+    rhos = []
+    for sc, va in zip(score, value):
+        if np.ptp(va) == 0 or np.ptp(sc) == 0:
+            continue
+        rhos.append(np.corrcoef(rankdata(sc), rankdata(va))[0, 1])
+    rows = np.arange(len(score))
+    grasp, prob = s[..., 0].ravel(), p[..., 0].ravel()
+    pos, neg = prob[grasp == 1], prob[grasp == 0]
+    if len(pos) and len(neg):  # Mann-Whitney: P(score of a held grasp > score of a failed one)
+        ranks = rankdata(np.concatenate([pos, neg]))
+        auc = (ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg))
+    else:
+        auc = float("nan")
+    return {
+        "spearman": float(np.mean(rhos)) if rhos else float("nan"),
+        "objects_ranked": len(rhos),
+        "trials_first": float(value[:, 0].mean()),
+        "trials_mean": float(value.mean()),
+        "trials_picked": float(value[rows, score.argmax(1)].mean()),
+        "trials_best": float(value.max(1).mean()),
+        "trials_worst": float(value.min(1).mean()),
+        "grasp_auc": float(auc),
+    }
+
+
+def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: int = 16,
+                    noise: float | None = None, key=0, backend: str = "mujoco",
+                    object_hulls=None, progress: bool | None = None) -> dict[str, float]:
+    """``ranking_stats`` of a trained run's fitness net on ``candidates`` designs per object.
+
+    The candidates are ``f2f_jax.design``'s: the generator's own output and K - 1 latent
+    perturbations (``noise``, default ``designer.LATENT_NOISE``), post-processed; all N x K are
+    simulated (infeasible ones score 0) and scored by the fitness net.  This is the measurement
+    behind the co-training's premise: a generator that climbs the fitness net can only improve
+    on what the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object.
+    """
+    from f2f_jax.designer import LATENT_NOISE, postprocess, predict, propose
+    from f2f_jax.sim import evaluate
+
+    if candidates < 2:
+        raise ValueError(f"candidates must be >= 2 to rank anything, got {candidates}")
+    cfg = cfg or models.config
+    objs = _objects_array(objects, cfg.geometry.resolution)
+    lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
+    feasible = postprocess(lefts, rights, cfg.geometry)
+    predicted = predict(models, objs, lefts, rights)
+    r = cfg.geometry.resolution
+    n, k = feasible.shape
+    hulls = None if object_hulls is None else [h for h in object_hulls for _ in range(k)]
+    simulated = evaluate(np.repeat(objs, k, 0), lefts.reshape(n * k, r, r, r),
+                         rights.reshape(n * k, r, r, r), backend=backend, cfg=cfg,
+                         progress=progress, object_hulls=hulls).reshape(n, k, -1)
+    out = ranking_stats(predicted, simulated)
+    out.update(objects=n, candidates=k, feasible=float(feasible.mean()))
+    return out

@@ -194,8 +194,41 @@ def test_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys):
 
     assert cli.main(["--tables", "3"]) == 2
     assert cli.main(["--extra", "no-equals-sign"]) == 2
+    assert cli.main(["--fitness-ranking", "1"]) == 2  # one candidate ranks nothing
     assert cli.main(["--extra", f"GS={tmp_path / 'missing'}"]) == 2
     assert cli.main(["--run-dir", str(tmp_path / "missing")]) == 2
     assert cli.main(["--run-dir", str(tmp_path)]) == 2  # a directory without an object set
     err = capsys.readouterr().err
     assert "--tables '3'" in err and "NAME=RUN_DIR" in err and "no object set" in err
+
+
+def test_ranking_stats_tell_a_fitness_net_that_ranks_from_one_that_ranks_backwards():
+    rng = np.random.default_rng(0)
+    sim = (rng.random((6, 5, 11)) < rng.random((6, 5, 1))).astype(np.uint8)  # candidates differ
+    value = sim.sum(-1)
+    good = np.repeat((value / 11.0)[..., None], 11, -1) * 0.8 + 0.1   # ranks like the simulator
+    bad = 1.0 - good                                                    # ranks backwards
+    g, b = E.ranking_stats(good, sim), E.ranking_stats(bad, sim)
+    assert g["spearman"] == pytest.approx(1.0) and b["spearman"] == pytest.approx(-1.0)
+    assert g["trials_picked"] == g["trials_best"] == value.max(1).mean()
+    assert b["trials_picked"] == b["trials_worst"] == value.min(1).mean()
+    assert g["trials_first"] == value[:, 0].mean() and g["trials_mean"] == value.mean()
+    assert g["grasp_auc"] > 0.5 > b["grasp_auc"]
+    # objects whose candidates all pass the same trials cannot be ranked: left out, not scored 0
+    same = np.repeat(sim[:, :1], 5, 1)
+    assert np.isnan(E.ranking_stats(good, same)["spearman"])
+    with pytest.raises(ValueError, match="11"):
+        E.ranking_stats(good[..., :3], sim)
+
+
+def test_fitness_ranking_simulates_every_candidate_of_a_run(objects, hulls, tiny):
+    from f2f_jax.train.state import init_models
+
+    models = init_models(tiny, seed=0)
+    r = E.fitness_ranking(models, objects[:2], tiny, candidates=2, object_hulls=hulls[:2],
+                          progress=False)
+    assert (r["objects"], r["candidates"]) == (2, 2)
+    assert r["trials_worst"] <= min(r["trials_first"], r["trials_picked"], r["trials_mean"])
+    assert max(r["trials_first"], r["trials_picked"], r["trials_mean"]) <= r["trials_best"] <= 11
+    with pytest.raises(ValueError, match="candidates"):
+        E.fitness_ranking(models, objects[:1], tiny, candidates=1)
