@@ -213,8 +213,8 @@ def default() -> Config:
         # Co-training epochs 1..2 per net and cycle (paper: 5..50): the fitness net's refit is
         # under its target BCE after one epoch from cycle 4 on, and the generator never reaches
         # its target here, so it runs the cap (2 passes over the 51 training objects).  A cycle
-        # costs ~50 s (simulation 25, refit 13, generator 12) against ~75 s with 2..6 epochs,
-        # which keeps the whole run under 45 minutes on 2 cores with an empty hull cache.
+        # costs ~47 s (simulation 25, refit 11, generator 11) against ~75 s with 2..6 epochs:
+        # the whole run took 41 min on 2 cores with an empty hull cache (benchmarks/RESULTS.md).
         train=dataclasses.replace(
             base.train, lr=1e-3, generator_lr=1e-4, ae_epochs=40, ae_batch_size=32, fn_epochs=10, fn_batch_size=32,
             gn_epochs=20, objects_per_cycle=32, cotrain_batch_size=32, min_epochs=1, max_epochs=2,
