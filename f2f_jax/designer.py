@@ -304,17 +304,20 @@ def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
                       f"got shape {arr.shape}")
 
 
-def _simulate(models, objects, lefts, rights, feasible, backend, progress=None) -> np.ndarray:
+def _simulate(models, objects, lefts, rights, feasible, backend, progress=None,
+              object_hulls=None) -> np.ndarray:
     """Simulated outcomes [B, K, 11] uint8: the feasible candidates in one evaluate call, zeros
-    for the rest (an infeasible finger scores all 0 by the protocol)."""
+    for the rest (an infeasible finger scores all 0 by the protocol).  object_hulls: optional
+    precomputed hulls, one per object."""
     from f2f_jax.sim import evaluate
 
     b, k = feasible.shape
     out = np.zeros((b, k, len(TRIAL_NAMES)), np.uint8)
     ib, ik = np.nonzero(feasible)
     if len(ib):
+        hulls = None if object_hulls is None else [object_hulls[i] for i in ib]
         out[ib, ik] = evaluate(objects[ib], lefts[ib, ik], rights[ib, ik], backend=backend,
-                               cfg=models.config, progress=progress)
+                               cfg=models.config, progress=progress, object_hulls=hulls)
     return out
 
 

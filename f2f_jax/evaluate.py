@@ -743,8 +743,7 @@ def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: i
     behind the co-training's premise: a generator that climbs the fitness net can only improve
     on what the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object.
     """
-    from f2f_jax.designer import LATENT_NOISE, postprocess, predict, propose
-    from f2f_jax.sim import evaluate
+    from f2f_jax.designer import LATENT_NOISE, _simulate, postprocess, predict, propose
 
     if candidates < 2:
         raise ValueError(f"candidates must be >= 2 to rank anything, got {candidates}")
@@ -753,12 +752,9 @@ def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: i
     lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
     feasible = postprocess(lefts, rights, cfg.geometry)
     predicted = predict(models, objs, lefts, rights)
-    r = cfg.geometry.resolution
+    simulated = _simulate(dataclasses.replace(models, config=cfg), objs, lefts, rights, feasible,
+                          backend, progress, object_hulls)
     n, k = feasible.shape
-    hulls = None if object_hulls is None else [h for h in object_hulls for _ in range(k)]
-    simulated = evaluate(np.repeat(objs, k, 0), lefts.reshape(n * k, r, r, r),
-                         rights.reshape(n * k, r, r, r), backend=backend, cfg=cfg,
-                         progress=progress, object_hulls=hulls).reshape(n, k, -1)
     out = ranking_stats(predicted, simulated)
     out.update(objects=n, candidates=k, feasible=float(feasible.mean()))
     return out
