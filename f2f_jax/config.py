@@ -213,7 +213,7 @@ def default() -> Config:
         # Co-training epochs 1..2 per net and cycle (paper: 5..50): the fitness net's refit is
         # under its target BCE after one epoch from cycle 4 on, and the generator never reaches
         # its target here, so it runs the cap (2 passes over the 51 training objects).  A cycle
-        # costs ~47 s (simulation 25, refit 11, generator 11) against ~75 s with 2..6 epochs:
+        # costs ~45 s (simulation 22, refit 12, generator 11) against ~75 s with 2..6 epochs:
         # the whole run took 41 min on 2 cores with an empty hull cache (benchmarks/RESULTS.md).
         train=dataclasses.replace(
             base.train, lr=1e-3, generator_lr=1e-4, ae_epochs=40, ae_batch_size=32, fn_epochs=10, fn_batch_size=32,
