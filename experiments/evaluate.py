@@ -4,12 +4,16 @@
     python experiments/evaluate.py --run-dir runs/cotrain   # + RandEmb+FN, Fit2Form; held-out objects
     python experiments/evaluate.py --run-dir runs/cotrain --extra "Fit2Form GS=runs/gs" \\
         --extra ImpGN=runs/impgn --design-search 64 --objects 64 --tables 1,2
+    python experiments/evaluate.py --run-dir runs/cotrain --extra "cycle 0=runs/cotrain/pretrained" \
+        --fresh 48 --seed 7 --neighbourhood 8 --tables 1 --no-randemb   # did co-training help?
 
 With --run-dir the held-out objects of the run (DIR/objects, its fixed split) are evaluated and the
 run's newest checkpoint gives the rows "Fit2Form" (or "Fit2Form GS", ... after the run's objectives)
 and "RandEmb+FN" (its shape decoder and fitness net without the generator).  Without a checkpoint
 only WSG50 and Imprint are run.  Each --extra NAME=RUN_DIR adds a Table 1 row from another run's
-checkpoint (ablations).  Table 2 has the paper's rows: WSG50, Imprint and the run's own row.
+checkpoint (ablations).  --neighbourhood K compares the generators (the run's and the extras'):
+K candidates per object each, all simulated, and the run's gain over each extra paired over
+objects with a bootstrap interval; --fresh N adds N never-seen built-in objects.  Table 2 has the paper's rows: WSG50, Imprint and the run's own row.
 Writes table1.{md,csv,png}, table2.{md,csv,png} and results.json into --out (default DIR/eval,
 or runs/eval without a run) and prints the markdown.
 """
@@ -103,6 +107,13 @@ def main(argv=None) -> int:
     p.add_argument("--fitness-ranking", type=int, default=None, metavar="K",
                    help="also measure how well the fitness net ranks K candidate designs per "
                         "object (all simulated): within-object Spearman, its pick vs the best")
+    p.add_argument("--neighbourhood", type=int, default=None, metavar="K",
+                   help="simulate K candidates per object (own design + K-1 latent perturbations) "
+                        "of the run and of every --extra; print each one's trials passed and the "
+                        "run's paired gain over each --extra with a 95%% bootstrap interval")
+    p.add_argument("--fresh", type=int, default=None, metavar="N",
+                   help="with --run-dir: add N new built-in objects (drawn with --seed, which must "
+                        "differ from the run's) to its held-out ones")
     p.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco")
     p.add_argument("--randemb-steps", type=int, default=200,
                    help="RandEmb+FN optimisation steps (paper: 200)")
@@ -130,6 +141,10 @@ def main(argv=None) -> int:
         return _fail("--design-search K needs K >= 1")
     if args.fitness_ranking is not None and args.fitness_ranking < 2:
         return _fail("--fitness-ranking K needs K >= 2 candidates to rank")
+    if args.neighbourhood is not None and args.neighbourhood < 1:
+        return _fail("--neighbourhood K needs K >= 1")
+    if args.fresh is not None and (args.fresh < 1 or not args.run_dir):
+        return _fail("--fresh N needs N >= 1 and --run-dir")
     extras = []
     for item in args.extra:
         name, sep, path = item.partition("=")
@@ -151,15 +166,27 @@ def main(argv=None) -> int:
 
     # -- objects -------------------------------------------------------------------------------
     if run_dir is not None:
+        source = run_dir / "objects" / "source.json"
+        meta = json.loads(source.read_text()) if source.exists() else {}
+        if args.fresh and meta.get("source") == "builtin" and meta.get("seed") == args.seed:
+            return _fail(f"--fresh with --seed {args.seed}: the run made its built-in objects with "
+                         "that seed, so they would not be new; pick another --seed")
         try:
             objects, names = _held_out_objects(run_dir, cfg)
         except (FileNotFoundError, ValueError) as exc:
             return _fail(str(exc))
         what = f"held-out objects of {run_dir}"
+        if args.fresh:
+            import numpy as np
+
+            new, new_names = _builtin_objects(args.fresh, args.seed, cfg)
+            objects = np.concatenate([objects[: args.objects], new])
+            names = list(names[: args.objects]) + [f"fresh/{n}" for n in new_names]
+            what += f" + {args.fresh} new built-in objects (seed {args.seed})"
     else:
         objects, names = _builtin_objects(args.objects or 12, args.seed, cfg)
         what = f"built-in objects (seed {args.seed})"
-    if args.objects is not None:
+    if args.objects is not None and not args.fresh:
         objects, names = objects[: args.objects], names[: args.objects]
     if len(objects) == 0:
         return _fail(f"no objects to evaluate ({what})")
@@ -204,12 +231,19 @@ def main(argv=None) -> int:
     ranked = models if run_dir is not None and args.fitness_ranking else None
     if args.fitness_ranking and ranked is None:
         _say("--fitness-ranking needs --run-dir with a checkpoint: skipped")
+    if args.neighbourhood and ranked is None and (run_dir is None or models is None):
+        _say("--neighbourhood needs --run-dir with a checkpoint: skipped")
+    generators = {}  # models compared by --neighbourhood: the run's first, then the extras
+    if args.neighbourhood and run_dir is not None and models is not None:
+        generators[E.OBJECTIVE_ROWS.get(models.objectives, "Fit2Form")] = models
     for name, path in extras:
         models_x, why = _load_models(path)
         if models_x is None:
             _say(f"--extra {name}: no usable checkpoint in {path} ({why}): row skipped")
             continue
         designers[name] = E.models_designer(models_x)
+        if generators:
+            generators[name] = models_x
 
     # -- designs once, hulls once, then the tables ---------------------------------------------
     progress = not args.quiet
@@ -259,6 +293,31 @@ def main(argv=None) -> int:
             f"generator's own {rk['trials_first']:.2f}, average candidate {rk['trials_mean']:.2f}, "
             f"fitness net's pick {rk['trials_picked']:.2f}, best {rk['trials_best']:.2f}, "
             f"worst {rk['trials_worst']:.2f}")
+    if generators:
+        k = args.neighbourhood
+        sims = {}
+        for name, m in generators.items():
+            _say(f"neighbourhood of {name}: {k} candidates per object, all simulated")
+            sims[name] = E.candidate_outcomes(m, objs, cfg, candidates=k, key=args.seed,
+                                              backend=args.backend, object_hulls=hulls,
+                                              progress=progress)[3]
+        stats = {name: E.neighbourhood_stats(v) for name, v in sims.items()}
+        first, *others = sims
+        gains = {name: E.paired_gain(sims[first], sims[name], seed=args.seed) for name in others}
+        results["neighbourhood"] = {"stats": stats, "gains": gains,
+                                    "outcomes": {n: v.tolist() for n, v in sims.items()}}
+        lines = [f"Generators on {len(objs)} objects, {k} candidates each (own design + {k - 1} "
+                 "latent perturbations), trials passed of 11 and grasp success:",
+                 "| generator | own design: trials | own: grasp | all candidates: trials | all: grasp |",
+                 "|---|---|---|---|---|"]
+        lines += [f"| {n} | {s['trials_own']:.2f} | {s['grasp_own']:.3f} | {s['trials_mean']:.2f} | "
+                  f"{s['grasp_mean']:.3f} |" for n, s in stats.items()]
+        for name, g in gains.items():
+            lines.append(f"{first} minus {name}, paired over objects (95% bootstrap interval; "
+                         "objects better / worse):")
+            lines += [f"  {m:12s} {v['diff']:+.3f}  [{v['ci_low']:+.3f}, {v['ci_high']:+.3f}]  "
+                      f"{v['better']} / {v['worse']}" for m, v in g.items()]
+        printed.append("\n".join(lines))
     results["seconds"] = round(time.perf_counter() - start, 1)
 
     from f2f_jax.fileio import atomic_path

@@ -732,29 +732,101 @@ def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, flo
     }
 
 
+def candidate_outcomes(models, objects, cfg: Config | None = None, *, candidates: int = 8,
+                       noise: float | None = None, key=0, backend: str = "mujoco",
+                       object_hulls=None, progress: bool | None = None):
+    """``f2f_jax.design``'s candidates for every object, all simulated.
+
+    Per object the generator's own output and ``candidates - 1`` latent perturbations (``noise``,
+    default ``designer.LATENT_NOISE``), post-processed; infeasible ones score 0 by the protocol.
+    objects: [N, 40, 40, 40]; object_hulls: optional, one per object.
+    Returns (lefts, rights [N, K, 40, 40, 40], feasible [N, K], simulated [N, K, 11] uint8).
+    """
+    from f2f_jax.designer import LATENT_NOISE, _simulate, postprocess, propose
+
+    if candidates < 1:
+        raise ValueError(f"candidates must be >= 1, got {candidates}")
+    cfg = cfg or models.config
+    objs = _objects_array(objects, cfg.geometry.resolution)
+    lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
+    feasible = postprocess(lefts, rights, cfg.geometry)
+    simulated = _simulate(dataclasses.replace(models, config=cfg), objs, lefts, rights, feasible,
+                          backend, progress, object_hulls)
+    return lefts, rights, feasible, simulated
+
+
 def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: int = 16,
                     noise: float | None = None, key=0, backend: str = "mujoco",
                     object_hulls=None, progress: bool | None = None) -> dict[str, float]:
     """``ranking_stats`` of a trained run's fitness net on ``candidates`` designs per object.
 
-    The candidates are ``f2f_jax.design``'s: the generator's own output and K - 1 latent
-    perturbations (``noise``, default ``designer.LATENT_NOISE``), post-processed; all N x K are
-    simulated (infeasible ones score 0) and scored by the fitness net.  This is the measurement
-    behind the co-training's premise: a generator that climbs the fitness net can only improve
-    on what the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object.
+    The candidates are ``candidate_outcomes``' (the generator's own output and K - 1 latent
+    perturbations), all simulated and scored by the fitness net.  This is the measurement behind
+    the co-training's premise: a generator that climbs the fitness net can only improve on what
+    the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object.
     """
-    from f2f_jax.designer import LATENT_NOISE, _simulate, postprocess, predict, propose
+    from f2f_jax.designer import predict
 
     if candidates < 2:
         raise ValueError(f"candidates must be >= 2 to rank anything, got {candidates}")
     cfg = cfg or models.config
     objs = _objects_array(objects, cfg.geometry.resolution)
-    lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
-    feasible = postprocess(lefts, rights, cfg.geometry)
+    lefts, rights, feasible, simulated = candidate_outcomes(
+        models, objs, cfg, candidates=candidates, noise=noise, key=key, backend=backend,
+        object_hulls=object_hulls, progress=progress)
     predicted = predict(models, objs, lefts, rights)
-    simulated = _simulate(dataclasses.replace(models, config=cfg), objs, lefts, rights, feasible,
-                          backend, progress, object_hulls)
     n, k = feasible.shape
     out = ranking_stats(predicted, simulated)
     out.update(objects=n, candidates=k, feasible=float(feasible.mean()))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Is one generator better than another?  Paired over objects, on each one's design neighbourhood.
+# --------------------------------------------------------------------------------------------
+
+def neighbourhood_stats(simulated: np.ndarray) -> dict[str, float]:
+    """Summary of [N, K, 11] outcomes of K candidates per object (candidate 0: the generator's own).
+
+    ``trials_own`` / ``grasp_own``: trials passed (of 11) and grasp success of the own designs;
+    ``trials_mean`` / ``grasp_mean``: the same over all K candidates.  The K-candidate means score
+    the generator's output and its latent neighbourhood, not one 0/1 draw per object, so they
+    separate two generators with far fewer objects than the own designs alone do.
+    """
+    s = np.asarray(simulated, np.float64)
+    if s.ndim != 3:
+        raise ValueError(f"simulated {s.shape}: expected [N, K, 11]")
+    return {"trials_own": float(s[:, 0].sum(-1).mean()), "grasp_own": float(s[:, 0, 0].mean()),
+            "trials_mean": float(s.sum(-1).mean()), "grasp_mean": float(s[..., 0].mean()),
+            "objects": s.shape[0], "candidates": s.shape[1]}
+
+
+def paired_gain(after: np.ndarray, before: np.ndarray, *, n_boot: int = 10000,
+                seed: int = 0) -> dict[str, dict[str, float]]:
+    """How much ``after`` beats ``before`` on the same objects, with a bootstrap over objects.
+
+    after, before: [N, K, 11] simulated outcomes of two generators' K candidates on the same N
+    objects (K may differ).  For each measure (``trials_mean``, ``grasp_mean``, ``trials_own``,
+    ``grasp_own``, as in ``neighbourhood_stats``) the per-object difference is averaged; returned
+    per measure: before, after, diff, ci_low / ci_high (95% percentile bootstrap of the mean
+    difference, objects resampled ``n_boot`` times), better / worse (objects that moved).
+    """
+    a, b = np.asarray(after, np.float64), np.asarray(before, np.float64)
+    if a.ndim != 3 or b.ndim != 3 or a.shape[0] != b.shape[0] or a.shape[2] != b.shape[2]:
+        raise ValueError(f"after {a.shape} and before {b.shape}: expected [N, K, 11] outcomes of "
+                         "the same N objects")
+    per_object = {
+        "trials_mean": lambda s: s.sum(-1).mean(1), "grasp_mean": lambda s: s[..., 0].mean(1),
+        "trials_own": lambda s: s[:, 0].sum(-1), "grasp_own": lambda s: s[:, 0, 0],
+    }
+    rng = np.random.default_rng(seed)
+    resample = rng.integers(0, a.shape[0], (n_boot, a.shape[0]))
+    out = {}
+    for name, f in per_object.items():
+        d = f(a) - f(b)
+        boot = d[resample].mean(1)
+        lo, hi = np.percentile(boot, [2.5, 97.5])
+        out[name] = {"before": float(f(b).mean()), "after": float(f(a).mean()),
+                     "diff": float(d.mean()), "ci_low": float(lo), "ci_high": float(hi),
+                     "better": int((d > 0).sum()), "worse": int((d < 0).sum())}
     return out

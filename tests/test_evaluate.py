@@ -198,8 +198,14 @@ def test_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys):
     assert cli.main(["--extra", f"GS={tmp_path / 'missing'}"]) == 2
     assert cli.main(["--run-dir", str(tmp_path / "missing")]) == 2
     assert cli.main(["--run-dir", str(tmp_path)]) == 2  # a directory without an object set
+    assert cli.main(["--neighbourhood", "0"]) == 2
+    assert cli.main(["--fresh", "4"]) == 2  # new objects are added to a run's held-out ones
+    (tmp_path / "objects").mkdir()
+    (tmp_path / "objects" / "source.json").write_text('{"source": "builtin", "n": 8, "seed": 3}')
+    assert cli.main(["--run-dir", str(tmp_path), "--fresh", "4", "--seed", "3"]) == 2
     err = capsys.readouterr().err
     assert "--tables '3'" in err and "NAME=RUN_DIR" in err and "no object set" in err
+    assert "would not be new" in err
 
 
 def test_ranking_stats_tell_a_fitness_net_that_ranks_from_one_that_ranks_backwards():
@@ -219,6 +225,26 @@ def test_ranking_stats_tell_a_fitness_net_that_ranks_from_one_that_ranks_backwar
     assert np.isnan(E.ranking_stats(good, same)["spearman"])
     with pytest.raises(ValueError, match="11"):
         E.ranking_stats(good[..., :3], sim)
+
+
+def test_paired_gain_sees_a_real_gain_and_no_gain_where_there_is_none():
+    rng = np.random.default_rng(1)
+    before = (rng.random((40, 4, 11)) < 0.5).astype(np.uint8)
+    after = before.copy()
+    after[:30, :, 5:] = 1  # 30 of 40 objects pass the robustness trials with every candidate
+    g = E.paired_gain(after, before)
+    t = g["trials_mean"]
+    assert t["diff"] > 0 and t["ci_low"] > 0 and t["worse"] == 0 and 0 < t["better"] <= 30
+    assert t["after"] - t["before"] == pytest.approx(t["diff"])
+    assert g["grasp_mean"]["diff"] == 0 and g["grasp_own"]["better"] == 0  # grasps untouched
+    same = E.paired_gain(before, before)["trials_own"]
+    assert same["diff"] == same["ci_low"] == same["ci_high"] == 0
+    # a generator that got worse: the interval lies below zero
+    assert E.paired_gain(before, after)["trials_mean"]["ci_high"] < 0
+    s = E.neighbourhood_stats(after)
+    assert s["trials_mean"] == t["after"] and s["candidates"] == 4
+    with pytest.raises(ValueError, match="same N objects"):
+        E.paired_gain(after[:5], before)
 
 
 def test_fitness_ranking_simulates_every_candidate_of_a_run(objects, hulls, tiny):
