@@ -1,0 +1,174 @@
+"""Test-retest of simulated outcomes: how much of one trial's 0/1 is the design, how much the path.
+
+    python benchmarks/sim_retest.py --n 64                                  # builtin triples
+    python benchmarks/sim_retest.py --run-dir runs/cotrain --candidates 8   # a run's designs
+
+The same (object, left, right) triples are simulated twice with plain MuJoCo: once as configured,
+once with a physically negligible change (``--perturb``: object mass x1.01, finger friction x1.01,
+or a 1.9 ms instead of 2 ms timestep; several may be given, each a rerun).  A design whose outcome
+flips under a 1% change in mass is decided by the solver's path, not by its shape: no fitness net
+can learn such a flip, and no backend (MJX included, ``mjx_agreement.py``) can be asked to agree
+with MuJoCo more often than MuJoCo agrees with itself.
+
+Two sources of triples:
+
+* ``--n N``: builtin objects with the pretraining dataset's pairs (imprint, WSG50, one cut pair),
+  as ``mjx_agreement.py`` makes them (same seed, same triples).
+* ``--run-dir RUN --candidates K``: ``f2f_jax.design``'s K candidates (the generator's own output
+  and K - 1 latent perturbations) on the run's held-out objects.  Also printed: the within-object
+  test-retest Spearman of trials passed, and how the best candidate of the first run scores in
+  the rerun against its first-run score (the part of best-of-K that is selection luck).
+
+Printed per perturbation: agreement per trial and overall, whole 11-vectors, success rates of both
+runs.  ``--json PATH`` writes the figures.  Cost: one MuJoCo evaluation per triple and run (about
+0.7 s on 2 cores in the default config).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from mjx_agreement import agreement_report, make_triples  # noqa: E402
+
+from f2f_jax import config, sim  # noqa: E402
+from f2f_jax.config import TRIAL_NAMES  # noqa: E402
+
+PERTURBATIONS = {
+    "mass": lambda s: dataclasses.replace(s, object_mass=s.object_mass * 1.01),
+    "friction": lambda s: dataclasses.replace(s, finger_friction=s.finger_friction * 1.01),
+    "timestep": lambda s: dataclasses.replace(s, timestep=s.timestep * 0.95),
+}
+
+
+def retest_stats(first: np.ndarray, second: np.ndarray) -> dict:
+    """Within-object test-retest of [N, K, 11] outcomes of the same N x K designs.
+
+    spearman: mean over objects of the rank correlation of trials passed between the two runs
+    (objects whose candidates tie in either run are left out); best_first / best_retest: trials
+    passed by each object's best first-run candidate, in the first run and in the rerun; mean:
+    trials passed by the average candidate in the first run.
+    """
+    from scipy.stats import spearmanr
+
+    a = first.sum(-1).astype(float)
+    b = second.sum(-1).astype(float)
+    rho = [spearmanr(x, y).statistic for x, y in zip(a, b) if x.std() > 0 and y.std() > 0]
+    best = a.argmax(1)
+    rows = np.arange(len(a))
+    return dict(spearman=float(np.mean(rho)) if rho else float("nan"), objects_ranked=len(rho),
+                mean=float(a.mean()), best_first=float(a[rows, best].mean()),
+                best_retest=float(b[rows, best].mean()))
+
+
+def _run_candidates(run_dir: Path, k: int, seed: int, workers):
+    """The run's held-out objects, K design candidates each, their feasibility and object hulls."""
+    from f2f_jax.designer import postprocess, propose
+    from f2f_jax.geometry.hulls import object_hulls_many
+    from f2f_jax.train.checkpoint import load_models
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    from evaluate import _held_out_objects
+
+    models = load_models(run_dir)
+    objs, names = _held_out_objects(run_dir, models.config)
+    lefts, rights = propose(models, objs, seed, k)
+    feasible = postprocess(lefts, rights, models.config.geometry)
+    hulls = object_hulls_many(list(objs), models.config, workers=workers)
+    return models, objs, names, lefts, rights, feasible, hulls
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--n", type=int, default=64, help="builtin triples (ignored with --run-dir)")
+    p.add_argument("--run-dir", type=Path, default=None, help="a co-training run: its design candidates")
+    p.add_argument("--candidates", type=int, default=8, help="candidates per held-out object (--run-dir)")
+    p.add_argument("--perturb", nargs="+", default=["mass"], choices=sorted(PERTURBATIONS),
+                   help="reruns, one per perturbation (default: mass)")
+    p.add_argument("--config", default="default", choices=sorted(config.CONFIGS),
+                   help="simulation phases of builtin triples (a run uses its own config)")
+    p.add_argument("--seed", type=int, default=0, help="builtin triples / candidate noise")
+    p.add_argument("--threads", type=int, default=os.cpu_count(), help="MuJoCo worker threads")
+    p.add_argument("--workers", type=int, default=None, help="coacd processes for uncached hulls")
+    p.add_argument("--json", type=Path, default=None, help="write the figures here")
+    args = p.parse_args(argv)
+    if args.n < 1 or args.candidates < 2:
+        p.error("--n must be >= 1 and --candidates >= 2")
+    if args.run_dir is not None and not (args.run_dir / "run.json").exists():
+        print(f"sim_retest: error: {args.run_dir} is not a co-training run directory (no run.json)",
+              file=sys.stderr)
+        return 2
+
+    t = time.perf_counter()
+    if args.run_dir is not None:
+        models, objs, names, lefts, rights, feasible, hulls = _run_candidates(
+            args.run_dir, args.candidates, args.seed, args.workers)
+        cfg = models.config
+        n, k = feasible.shape
+        ib, ik = np.nonzero(feasible)
+        o, lft, rgt = objs[ib], lefts[ib, ik], rights[ib, ik]
+        hl = [hulls[i] for i in ib]
+        what = f"{n} held-out objects x {k} candidates of {args.run_dir} ({len(ib)} feasible)"
+    else:
+        from f2f_jax.geometry.hulls import object_hulls_many
+
+        cfg = config.get(args.config)
+        pool, triples = make_triples(args.n, args.seed, cfg)
+        used = sorted({tr["object"] for tr in triples})
+        by_object = dict(zip(used, object_hulls_many([pool[i] for i in used], cfg, workers=args.workers)))
+        o = np.stack([pool[tr["object"]] for tr in triples])
+        lft = np.stack([tr["left"] for tr in triples])
+        rgt = np.stack([tr["right"] for tr in triples])
+        hl = [by_object[tr["object"]] for tr in triples]
+        what = f"{len(triples)} builtin triples (seed {args.seed}, config {args.config})"
+    print(f"prepared {what} in {time.perf_counter() - t:.1f} s", flush=True)
+
+    def simulate(c):
+        return sim.evaluate(o, lft, rgt, backend="mujoco", cfg=c, threads=args.threads,
+                            object_hulls=hl, progress=False)
+
+    t = time.perf_counter()
+    base = simulate(cfg)
+    print(f"first run: {time.perf_counter() - t:.1f} s", flush=True)
+    results = {"source": what, "n_triples": len(o), "perturbations": {}}
+    for name in args.perturb:
+        t = time.perf_counter()
+        again = simulate(cfg.replace(sim=PERTURBATIONS[name](cfg.sim)))
+        rep = agreement_report(base, again)
+        print(f"\n{name} rerun ({time.perf_counter() - t:.1f} s)")
+        print(f"{'trial':>7s} " + " ".join(f"{n:>5s}" for n in TRIAL_NAMES))
+        print(f"{'agree':>7s} " + " ".join(f"{a:5.3f}" for a in rep["per_trial"]))
+        print(f"{'first':>7s} " + " ".join(f"{a:5.2f}" for a in base.mean(0)))
+        print(f"{'rerun':>7s} " + " ".join(f"{a:5.2f}" for a in again.mean(0)))
+        print(f"overall agreement {rep['agreement']:.4f} over {base.size} trials; whole vectors "
+              f"{rep['whole_vectors']:.3f}")
+        entry = dict(agreement=rep["agreement"], per_trial=rep["per_trial"],
+                     whole_vectors=rep["whole_vectors"], grasp_confusion=rep["grasp_confusion"])
+        if args.run_dir is not None:
+            full = [np.zeros((n, k, len(TRIAL_NAMES)), np.uint8) for _ in range(2)]
+            full[0][ib, ik], full[1][ib, ik] = base, again
+            rs = retest_stats(*full)
+            print(f"within-object test-retest Spearman of trials passed {rs['spearman']:.3f} "
+                  f"({rs['objects_ranked']} objects); the best first-run candidate passes "
+                  f"{rs['best_first']:.2f} trials, {rs['best_retest']:.2f} in the rerun (average "
+                  f"candidate {rs['mean']:.2f})")
+            entry.update(rs)
+        results["perturbations"][name] = entry
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(results, indent=1))
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,44 @@
+"""The test-retest figures of benchmarks/sim_retest.py."""
+
+import importlib
+
+import numpy as np
+
+retest = importlib.import_module("benchmarks.sim_retest")
+
+
+def _outcomes(trials_passed: np.ndarray) -> np.ndarray:
+    """[N, K] trials passed -> [N, K, 11] outcomes (the first t trials pass)."""
+    return (np.arange(11) < trials_passed[..., None]).astype(np.uint8)
+
+
+def test_identical_runs_retest_perfectly():
+    a = _outcomes(np.array([[0, 3, 7, 11], [2, 2, 5, 9]]))
+    s = retest.retest_stats(a, a)
+    assert s["spearman"] == 1.0 and s["objects_ranked"] == 2
+    assert s["best_first"] == s["best_retest"] == 10.0
+    assert s["mean"] == np.mean([0, 3, 7, 11, 2, 2, 5, 9])
+
+
+def test_reversed_rerun_exposes_selection_luck():
+    first = np.array([[0, 3, 7, 11], [1, 4, 6, 8]])
+    second = first[:, ::-1]  # the rerun ranks every object's candidates backwards
+    s = retest.retest_stats(_outcomes(first), _outcomes(second))
+    assert s["spearman"] == -1.0
+    assert s["best_first"] == 9.5 and s["best_retest"] == 0.5
+
+
+def test_tied_objects_are_left_out():
+    first = np.array([[5, 5, 5], [1, 2, 3]])
+    s = retest.retest_stats(_outcomes(first), _outcomes(first))
+    assert s["objects_ranked"] == 1 and s["spearman"] == 1.0
+
+
+def test_bad_arguments_are_refused_before_any_work(tmp_path, capsys):
+    import pytest
+
+    assert retest.main(["--run-dir", str(tmp_path)]) == 2  # no run.json: not a co-training run
+    assert "not a co-training run directory" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        retest.main(["--candidates", "1"])
+    assert exc.value.code == 2
