@@ -231,11 +231,11 @@ def main(argv=None) -> int:
     ranked = models if run_dir is not None and args.fitness_ranking else None
     if args.fitness_ranking and ranked is None:
         _say("--fitness-ranking needs --run-dir with a checkpoint: skipped")
-    if args.neighbourhood and ranked is None and (run_dir is None or models is None):
-        _say("--neighbourhood needs --run-dir with a checkpoint: skipped")
     generators = {}  # models compared by --neighbourhood: the run's first, then the extras
-    if args.neighbourhood and run_dir is not None and models is not None:
-        generators[E.OBJECTIVE_ROWS.get(models.objectives, "Fit2Form")] = models
+    if args.neighbourhood and (run_dir is None or models is None):
+        _say("--neighbourhood needs --run-dir with a checkpoint: skipped")
+    elif args.neighbourhood:
+        generators[E.OBJECTIVE_ROWS.get(models.objectives, f"Fit2Form ({models.objectives})")] = models
     for name, path in extras:
         models_x, why = _load_models(path)
         if models_x is None:

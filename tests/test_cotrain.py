@@ -229,3 +229,29 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
     (tmp_path / "used" / "x").write_text("x")
     assert cli.main([*args[:-1], str(tmp_path / "used")]) == 2
     assert "not empty" in capsys.readouterr().err
+
+
+def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted, tmp_path, capsys):
+    """experiments/evaluate.py --neighbourhood: both generators' candidates simulated on the run's
+    held-out objects plus new built-in ones, and the paired gain is the difference of the two."""
+    sys.path.insert(0, str(ROOT / "experiments"))
+    try:
+        import evaluate as cli
+    finally:
+        sys.path.pop(0)
+    run_dir, _ = uninterrupted
+    out = tmp_path / "eval"
+    args = ["--run-dir", str(run_dir), "--extra", f"cycle 0={run_dir / 'pretrained'}", "--objects", "1",
+            "--fresh", "1", "--seed", "5", "--neighbourhood", "2", "--tables", "1", "--no-randemb",
+            "--quiet", "--out", str(out)]
+    assert cli.main(args) == 0, capsys.readouterr().err
+    res = json.loads((out / "results.json").read_text())
+    assert res["objects"] == 2 and res["names"][1].startswith("fresh/")
+    nb = res["neighbourhood"]
+    (first, after), (name, before) = nb["stats"].items()
+    assert name == "cycle 0" and after["candidates"] == 2 and after["objects"] == 2
+    assert np.asarray(nb["outcomes"][first]).shape == (2, 2, 11)
+    gain = nb["gains"]["cycle 0"]["trials_mean"]
+    assert gain["diff"] == pytest.approx(after["trials_mean"] - before["trials_mean"])
+    assert gain["ci_low"] <= gain["diff"] <= gain["ci_high"]
+    assert "paired over objects" in capsys.readouterr().out
