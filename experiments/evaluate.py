@@ -4,16 +4,17 @@
     python experiments/evaluate.py --run-dir runs/cotrain   # + RandEmb+FN, Fit2Form; held-out objects
     python experiments/evaluate.py --run-dir runs/cotrain --extra "Fit2Form GS=runs/gs" \\
         --extra ImpGN=runs/impgn --design-search 64 --objects 64 --tables 1,2
-    python experiments/evaluate.py --run-dir runs/cotrain --extra "cycle 0=runs/cotrain/pretrained" \
+    python experiments/evaluate.py --run-dir runs/cotrain --extra "cycle 0=runs/cotrain/pretrained" \\
         --fresh 48 --seed 7 --neighbourhood 8 --tables 1 --no-randemb   # did co-training help?
 
 With --run-dir the held-out objects of the run (DIR/objects, its fixed split) are evaluated and the
 run's newest checkpoint gives the rows "Fit2Form" (or "Fit2Form GS", ... after the run's objectives)
 and "RandEmb+FN" (its shape decoder and fitness net without the generator).  Without a checkpoint
 only WSG50 and Imprint are run.  Each --extra NAME=RUN_DIR adds a Table 1 row from another run's
-checkpoint (ablations).  --neighbourhood K compares the generators (the run's and the extras'):
-K candidates per object each, all simulated, and the run's gain over each extra paired over
-objects with a bootstrap interval; --fresh N adds N never-seen built-in objects.  Table 2 has the paper's rows: WSG50, Imprint and the run's own row.
+checkpoint (ablations).  Table 2 has the paper's rows: WSG50, Imprint and the run's own row.
+--neighbourhood K compares the generators (the run's and the extras'): K candidates per object
+each, all simulated, and the run's gain over each extra paired over objects with a bootstrap
+interval; --fresh N adds N never-seen built-in objects to the run's held-out ones.
 Writes table1.{md,csv,png}, table2.{md,csv,png} and results.json into --out (default DIR/eval,
 or runs/eval without a run) and prints the markdown.
 """
