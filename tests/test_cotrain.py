@@ -234,11 +234,8 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
 def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted, tmp_path, capsys):
     """experiments/evaluate.py --neighbourhood: both generators' candidates simulated on the run's
     held-out objects plus new built-in ones, and the paired gain is the difference of the two."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    try:
-        import evaluate as cli
-    finally:
-        sys.path.pop(0)
+    from experiments import evaluate as cli  # as tests/test_evaluate.py imports it
+
     run_dir, _ = uninterrupted
     out = tmp_path / "eval"
     args = ["--run-dir", str(run_dir), "--extra", f"cycle 0={run_dir / 'pretrained'}", "--objects", "1",
