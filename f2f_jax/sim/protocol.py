@@ -12,7 +12,11 @@ Rules (DESIGN.md section 2):
 * a NaN or exploding state (MuJoCo warnings, non-finite state, a speed above ``max_speed``) ends
   that trial as a failure and is counted in ``TrialResult.unstable``, never raised;
 * once the object is below the success height after the lift is done, nothing can raise it again
-  (the gripper stands still), so that trial stops early: a failure costs few steps.
+  (the gripper stands still), so that trial stops early: a failure costs few steps;
+* with ``SimConfig.rest_speed > 0`` the settle, close, hold and post-push hold phases also end
+  early once nothing moves faster than ``rest_speed`` for ``rest_time``: an object at rest in
+  the fingers with the gripper standing still stays where it is, so the rest of the hold cannot
+  change the outcome (``benchmarks/sim_agreement.py`` measures that it does not).
 """
 
 from __future__ import annotations
@@ -30,6 +34,9 @@ from f2f_jax.sim.scene import JawOpener, SceneIds, finger_object_contacts, objec
 # caught before it does anything but fail its own trial, long enough that Python's overhead
 # stays a few percent of the stepping.
 CHECK_EVERY = 25
+# Steps between rest checks in phases that may end at rest: the rest window is sampled this
+# often, so a swinging object passing through zero speed is not mistaken for one at rest.
+REST_CHECK_EVERY = 5
 # The lift command changes every LIFT_CHUNK steps (10 ms at 2 ms steps) along its profile.
 LIFT_CHUNK = 5
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
@@ -113,23 +120,36 @@ class GraspRunner:
     def healthy(self) -> bool:
         """False if MuJoCo warned since the trial began, the state is not finite or anything
         moves faster than ``max_speed``."""
-        d, ids = self.data, self.ids
+        d = self.data
         if self._warning_count() != self._warnings:
             return False
         if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
             return False
+        return self.speed() <= self.cfg.sim.max_speed
+
+    def speed(self) -> float:
+        """The fastest motion in the scene (m/s): the object's linear speed, its angular speed
+        at ``_SPIN_RADIUS``, the jaws' and the lift's speeds."""
+        d, ids = self.data, self.ids
         v = d.qvel[ids.object_dof: ids.object_dof + 6]
-        speed = max(float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:])) * _SPIN_RADIUS,
-                    float(np.max(np.abs(d.qvel[self._speed_dofs]))))
-        return speed <= self.cfg.sim.max_speed
+        return max(float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:])) * _SPIN_RADIUS,
+                   float(np.max(np.abs(d.qvel[self._speed_dofs]))))
 
     def advance(self, n: int, *, stop_below: float | None = None,
-                chunk: int = CHECK_EVERY) -> bool:
+                chunk: int = CHECK_EVERY, until_rest: bool = False) -> bool:
         """Step ``n`` times in chunks of ``chunk`` steps, checking health after each chunk.
 
         stop_below: stop early (return False) once the object's centre is below this height.
-        Returns True if all n steps ran.  Raises Unstable.
+        until_rest: also stop early (return True) once ``speed()`` has stayed below
+            ``SimConfig.rest_speed`` for ``rest_time`` (sampled every REST_CHECK_EVERY steps);
+            ignored when rest_speed is 0 (the ``reference`` preset).
+        Returns True if the phase ran to its end or to rest.  Raises Unstable.
         """
+        s = self.cfg.sim
+        rest_steps = s.steps(s.rest_time) if until_rest and s.rest_speed > 0 else None
+        if rest_steps is not None:
+            chunk = min(chunk, REST_CHECK_EVERY)
+        resting_since = None  # step count of the first sample of the current rest window
         done = 0
         while done < n:
             k = min(chunk, n - done)
@@ -140,6 +160,13 @@ class GraspRunner:
                 raise Unstable(f"unstable state at t = {self.data.time:.3f} s")
             if stop_below is not None and self.object_height() < stop_below:
                 return False
+            if rest_steps is not None:
+                if self.speed() >= s.rest_speed:
+                    resting_since = None
+                elif resting_since is None:
+                    resting_since = done
+                elif done - resting_since >= rest_steps:
+                    return True
         return True
 
     def object_height(self) -> float:
@@ -190,13 +217,13 @@ class GraspRunner:
         """
         s, d, ids = self.cfg.sim, self.data, self.ids
         touching = self.place(yaw)
-        self.advance(s.steps(s.settle_time))
+        self.advance(s.steps(s.settle_time), until_rest=True)
         z_start = self.object_height()
         self.z_start = z_start
         _, touching_closing = self.approach()
         touching += touching_closing
         d.ctrl[ids.grip_act] = ids.jaw_range[:, 0]  # beyond any contact: both servos saturate
-        self.advance(s.steps(s.close_time))
+        self.advance(s.steps(s.close_time), until_rest=True)
         # The lift actuator integrates its command (a speed) into its position target: a
         # constant command per chunk moves the target exactly along the profile's chord.
         targets = lift_targets(self.cfg)
@@ -205,7 +232,8 @@ class GraspRunner:
             d.ctrl[ids.lift_act] = (targets[j] - targets[i]) / ((j - i) * s.timestep)
             self.advance(j - i, chunk=LIFT_CHUNK)
         d.ctrl[ids.lift_act] = 0.0
-        self.advance(s.steps(s.hold_time), stop_below=z_start + s.success_min_height)
+        self.advance(s.steps(s.hold_time), stop_below=z_start + s.success_min_height,
+                     until_rest=True)
         ok, rise = self.held(z_start)
         return ok, rise, touching
 
@@ -221,7 +249,7 @@ class GraspRunner:
         running = self.advance(s.steps(s.push_time), stop_below=below)
         d.xfrc_applied[ids.object_body, :3] = 0.0
         if running:
-            self.advance(s.steps(s.push_hold_time), stop_below=below)
+            self.advance(s.steps(s.push_hold_time), stop_below=below, until_rest=True)
         return self.held(z_start)
 
 

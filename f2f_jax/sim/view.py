@@ -49,9 +49,9 @@ class RecordingRunner(GraspRunner):
         mujoco.mj_kinematics(self.model, self.data)
         self.frames.append(Frame(label, self.data.geom_xpos.copy(), self.data.geom_xmat.copy()))
 
-    def advance(self, n, *, stop_below=None, chunk=25):
+    def advance(self, n, *, stop_below=None, chunk=25, until_rest=False):
         try:
-            return super().advance(n, stop_below=stop_below, chunk=chunk)
+            return super().advance(n, stop_below=stop_below, chunk=chunk, until_rest=until_rest)
         finally:
             self._phase += 1
             self.snapshot(f"{self.trial}:{self._phase}")
@@ -134,7 +134,8 @@ def render_trials(model: mujoco.MjModel, cfg: Config, path) -> np.ndarray:
 
 def main(argv=None) -> int:
     from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, wsg50_fingers
-    from f2f_jax.geometry.hulls import finger_hulls, object_hulls
+    from f2f_jax.geometry.hulls import finger_hulls
+    from f2f_jax.geometry.pieces import object_pieces
     from f2f_jax.sim.scene import build_model
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -142,11 +143,13 @@ def main(argv=None) -> int:
     p.add_argument("--fingers", default="imprint", choices=["imprint", "wsg50"])
     p.add_argument("--friction", type=float, default=None, help="finger-object friction")
     p.add_argument("--config", default="default", choices=sorted(config_mod.CONFIGS))
+    p.add_argument("--sim-preset", default="fast", choices=sorted(config_mod.SIM_PRESETS),
+                   help="collision geometry and early exits (default: fast)")
     p.add_argument("--out", default="grasp.png")
     args = p.parse_args(argv)
     import trimesh
 
-    cfg = config_mod.get(args.config)
+    cfg = config_mod.with_sim_preset(config_mod.get(args.config), args.sim_preset)
     if args.object == "sphere":
         mesh = trimesh.creation.icosphere(subdivisions=3)
     elif args.object == "box":
@@ -159,7 +162,8 @@ def main(argv=None) -> int:
     left, right = imprint_fingers(obj) if args.fingers == "imprint" else wsg50_fingers()
     if args.friction is not None:
         cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, finger_friction=args.friction))
-    model = build_model(object_hulls(obj, cfg), finger_hulls(left, cfg), finger_hulls(right, cfg), cfg)
+    model = build_model(object_pieces(obj, cfg), finger_hulls(left, cfg), finger_hulls(right, cfg),
+                        cfg)
     outcome = render_trials(model, cfg, args.out)
     print(f"{args.out}: outcome {dict(zip(TRIAL_NAMES, outcome.tolist()))}")
     return 0
