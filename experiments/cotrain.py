@@ -69,6 +69,9 @@ def main(argv=None) -> int:
     p.add_argument("--from-pretrained", metavar="RUN_DIR", default=None,
                    help="start the cycles from another run's pretraining (objects, dataset, models); "
                         "only co-training settings (--objectives, --imprint-anchor) may differ")
+    p.add_argument("--sim-preset", default=None, choices=["fast", "reference"],
+                   help="simulation preset (config.SIM_PRESETS): fast (default) or reference (coacd "
+                        "objects, every phase at full length)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     args = p.parse_args(argv)
@@ -95,6 +98,8 @@ def main(argv=None) -> int:
             return fail(f"--objects {args.objects}: no mesh files (.obj/.stl/.ply/.off/.glb) in it")
         args.objects = str(d.resolve())
     cfg = config.get(args.config)
+    if args.sim_preset is not None:
+        cfg = config.with_sim_preset(cfg, args.sim_preset)
     changes = {}
     if args.n_objects is not None:
         if args.objects != "builtin":

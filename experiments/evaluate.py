@@ -116,6 +116,8 @@ def main(argv=None) -> int:
                    help="with --run-dir: add N new built-in objects (drawn with --seed, which must "
                         "differ from the run's) to its held-out ones")
     p.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco")
+    p.add_argument("--sim-preset", default=None, choices=["fast", "reference"],
+                   help="simulation preset (config.SIM_PRESETS; default: the run's config's)")
     p.add_argument("--randemb-steps", type=int, default=200,
                    help="RandEmb+FN optimisation steps (paper: 200)")
     p.add_argument("--randemb-samples", type=int, default=4, help="RandEmb+FN random starts per object")
@@ -163,6 +165,8 @@ def main(argv=None) -> int:
         return _fail(f"--run-dir {run_dir}: no such directory")
     cfg = config.get(args.config) if args.config else (_run_config(run_dir) if run_dir else None)
     cfg = cfg or config.default()
+    if args.sim_preset is not None:
+        cfg = config.with_sim_preset(cfg, args.sim_preset)
     out_dir = Path(args.out) if args.out else (run_dir / "eval" if run_dir else Path("runs/eval"))
 
     # -- objects -------------------------------------------------------------------------------

@@ -23,6 +23,9 @@ def main(argv=None) -> int:
     p.add_argument("--out", default="runs/dataset", help="run directory (objects + store)")
     p.add_argument("--config", default="default", choices=sorted(config.CONFIGS))
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--sim-preset", default=None, choices=["fast", "reference"],
+                   help="simulation preset (config.SIM_PRESETS): fast (default) or reference (coacd "
+                        "objects, every phase at full length)")
     p.add_argument("--cut-pairs", type=int, default=2, help="pairs cut from other shapes per object")
     p.add_argument("--batch", type=int, default=8, help="objects per stored chunk")
     p.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
@@ -30,6 +33,8 @@ def main(argv=None) -> int:
     if args.n <= 0:
         p.error("--n must be positive")
     cfg = config.get(args.config)
+    if args.sim_preset is not None:
+        cfg = config.with_sim_preset(cfg, args.sim_preset)
     out = Path(args.out)
     tsdfs, names = load_or_make_objects(args.objects, args.n, args.seed, out / "objects", cfg.geometry)
     store = GraspStore(out / "store")

@@ -526,7 +526,7 @@ def prepare_objects(objects, cfg: Config, *, object_hulls=None, cache_dir=None,
     Returns (kept objects [M, R, R, R], hulls list of M, notes).  An object whose hulls cannot be
     made (a DecompositionError) is dropped with a note: it says nothing about any finger.
     """
-    from f2f_jax.geometry.hulls import object_hulls as make_hulls
+    from f2f_jax.geometry.pieces import object_pieces as make_hulls
 
     objs = _objects_array(objects, cfg.geometry.resolution)
     if object_hulls is not None:

@@ -2,8 +2,9 @@
 
 Clear cases whose outcome follows from statics: a 50 g sphere (0.49 N) between two flat tips
 pressed with 1 N each needs a friction coefficient of at least 0.245 (more while the lift
-accelerates it), and 2 x 0.5 x 1 N cannot hold weight plus a 1.5 N downward push.  A full
-evaluation here is ~5k steps (~0.3 s); failed grasps stop after ~400 steps.
+accelerates it), and 2 x 0.5 x 1 N cannot hold weight plus a 1.5 N downward push.  They run under
+both simulation presets (``preset`` fixture): the fast default must pass them as the reference
+does.  A full evaluation here is ~5k steps (~0.3 s); failed grasps stop after ~400 steps.
 """
 
 import dataclasses
@@ -17,6 +18,7 @@ from f2f_jax.config import TRIAL_NAMES, voxel_centres
 from f2f_jax.errors import VolumeError
 from f2f_jax.geometry import imprint_fingers, is_feasible, tsdf_to_mesh, wsg50_fingers
 from f2f_jax.geometry.hulls import Hulls, finger_hulls, pad_hulls
+from f2f_jax.geometry.pieces import object_pieces
 from f2f_jax.sim import GraspRunner, build_model, evaluate, run_trials, scene_ids
 
 
@@ -38,6 +40,13 @@ def flat_tips(tiny):
     return finger_hulls(left, tiny), finger_hulls(right, tiny)
 
 
+@pytest.fixture(scope="module", params=sorted(config.SIM_PRESETS))
+def preset(request, sphere_tsdf, tmp_path_factory):
+    """(tiny config under one simulation preset, the sphere's object pieces under it)."""
+    cfg = config.with_sim_preset(config.tiny(), request.param)
+    return cfg, object_pieces(sphere_tsdf, cfg, cache_dir=tmp_path_factory.mktemp("hulls"))
+
+
 def box_tsdf(lo, hi, cfg) -> np.ndarray:
     """Truncated signed distance of an axis-aligned box (metres, local frame), [40, 40, 40]."""
     pts = np.stack(np.meshgrid(*voxel_centres(cfg.geometry), indexing="ij"), -1)
@@ -55,7 +64,8 @@ def grasp_only(model, cfg):
 
 
 def test_sphere_in_its_imprint_fingers_is_lifted_and_survives_the_downward_push(
-        sphere_tsdf, sphere_hulls, tiny):
+        sphere_tsdf, preset):
+    tiny, sphere_hulls = preset
     left, right = imprint_fingers(sphere_tsdf, tiny)
     out, info = evaluate([sphere_tsdf], [left], [right], cfg=tiny, object_hulls=sphere_hulls,
                          return_info=True)
@@ -69,15 +79,16 @@ def test_sphere_in_its_imprint_fingers_is_lifted_and_survives_the_downward_push(
     assert info.unstable[0] == 0 and info.initial_contacts[0] == 0
 
 
-def test_flat_tips_let_the_sphere_slip_at_mu_02_and_lift_it_at_mu_1(sphere_hulls, flat_tips, tiny):
+def test_flat_tips_let_the_sphere_slip_at_mu_02_and_lift_it_at_mu_1(preset, flat_tips):
+    tiny, sphere_hulls = preset
     ok, rise = grasp_only(build_model(sphere_hulls, *flat_tips, tiny, friction=0.2), tiny)
     assert not ok and rise < 0.01, f"2 x 0.2 x 1 N < 0.49 N must slip, rose {rise:.3f} m"
     ok, rise = grasp_only(build_model(sphere_hulls, *flat_tips, tiny, friction=1.0), tiny)
     assert ok and rise > tiny.sim.lift_height - 0.01, f"mu 1.0 must hold, rose {rise:.3f} m"
 
 
-def test_flat_tips_at_mu_05_hold_the_sphere_but_drop_it_when_pushed_down(sphere_hulls, flat_tips,
-                                                                        tiny):
+def test_flat_tips_at_mu_05_hold_the_sphere_but_drop_it_when_pushed_down(preset, flat_tips):
+    tiny, sphere_hulls = preset
     # 2 x 0.5 x 1 N = 1 N holds 0.49 N but not 0.49 N + 1.5 N
     res = run_trials(build_model(sphere_hulls, *flat_tips, tiny, friction=0.5), tiny)
     assert res.outcome[0] == 1 and res.outcome[1] == 0, res.outcome
@@ -108,7 +119,8 @@ def test_effective_finger_object_friction_is_the_fingers_not_the_max(sphere_hull
     # coefficient, 0.5, would hold it (as the mu 0.5 test shows)
 
 
-def test_feasible_fingers_that_miss_the_object_score_zero(tiny):
+def test_feasible_fingers_that_miss_the_object_score_zero(preset):
+    tiny, _ = preset
     low_box = box_tsdf([-0.0285, -0.0285, 0.0015], [0.0285, 0.0285, 0.015], tiny)
     # a finger band over the upper third of the cube: it closes above the low box
     band = box_tsdf([-0.03, 0.01, -0.01], [0.03, 0.03, 0.06], tiny)
@@ -222,6 +234,7 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
                                                         tiny, tmp_path):
     """Without object_hulls, evaluate decomposes each distinct volume once (coacd is slow) and a
     decomposition error fails only the candidates of that object."""
+    tiny = config.with_sim_preset(tiny, "reference")  # the coacd path
     from f2f_jax.errors import DecompositionError
     from f2f_jax.geometry import hulls
 

@@ -16,11 +16,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from f2f_jax.config import Config
+from f2f_jax.config import Config, with_sim_preset
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry.fingers import feasibility_report
 from f2f_jax.geometry.hulls import Hulls, finger_hulls
-from f2f_jax.geometry.hulls import object_hulls_many as make_object_hulls_many
+from f2f_jax.geometry.pieces import object_pieces_many as make_object_hulls_many
 from f2f_jax.geometry.tsdf import check_tsdf
 from f2f_jax.sim.protocol import TrialResult, run_trials
 from f2f_jax.sim.scene import build_model
@@ -101,7 +101,8 @@ def _simulate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config
 
 def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | None = None,
              threads: int | None = None, progress: bool | None = None, object_hulls=None,
-             cache_dir=None, return_info: bool = False, object_xy=None):
+             cache_dir=None, return_info: bool = False, object_xy=None,
+             preset: str | None = None):
     """Simulate the 11 trials of N (object, left finger, right finger) triples.
 
     objects, lefts, rights: [N, 40, 40, 40] float32 TSDF arrays (or length-N sequences of
@@ -109,12 +110,15 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     backend: "mujoco" (this module: threads over candidates, the CPU default) or "mjx" (all
         candidates batched in MJX, ``sim.mjx_batch``; pays off on an accelerator).
     threads: worker threads (default os.cpu_count()).
-    progress: tqdm bars; None shows the trials bar when N > 32 and the object-hulls bar when
-        more than one distinct object needs hulls (coacd takes ~25 s per object, uncached).
-    object_hulls: precomputed object Hulls, one for all or a length-N sequence; default computes
-        them with ``geometry.hulls.object_hulls`` (coacd, cached on disk in ``cache_dir``), once
-        per distinct object volume.
+    progress: tqdm bars; None shows the trials bar when N > 32 and, with coacd objects, the
+        object-hulls bar when more than one distinct object needs hulls (~15 s each, uncached).
+    object_hulls: precomputed object pieces (Hulls), one for all or a length-N sequence; default
+        makes them by ``cfg.geometry.object_method`` (``geometry.pieces.object_pieces``: boxes in
+        milliseconds, or coacd cached on disk in ``cache_dir``), once per distinct object.
     return_info: also return an EvaluationInfo.
+    preset: a simulation preset of ``config.SIM_PRESETS`` applied to cfg ("fast", the default
+        of every config, or "reference"); None keeps cfg as it is.  The "mjx" backend runs every
+        phase to its full length whatever the preset (its batch steps all worlds in lock-step).
     object_xy: None (the object at the grasp location), one [2] or per-candidate [N, 2] float
         offsets (x, y) in metres that shift the object on the floor before every trial (x is
         the closing direction); the robustness grasps turn it about its shifted centre.  Only
@@ -129,6 +133,8 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     if backend not in ("mujoco", "mjx"):
         raise ValueError(f"unknown backend {backend!r}; choose 'mujoco' or 'mjx'")
     cfg = cfg or Config()
+    if preset is not None:
+        cfg = with_sim_preset(cfg, preset)
     g, n_trials = cfg.geometry, cfg.sim.n_trials
     r = g.resolution
     objs = _as_volumes(objects, "objects", r)
@@ -235,8 +241,9 @@ def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir
         try:
             if isinstance(hulls, str):
                 raise F2FError(f"object hulls: {hulls}")
-            models.append(build_model(hulls, finger_hulls(lefts[i], cfg), finger_hulls(rights[i], cfg),
-                                      cfg, pad_collides=True, max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS))
+            models.append(build_model(hulls, finger_hulls(lefts[i], cfg),
+                                      finger_hulls(rights[i], cfg), cfg, pad_collides=True,
+                                      max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS, boxes=False))
             index.append(i)
         except (F2FError, ValueError) as exc:
             errors[int(i)] = f"{type(exc).__name__}: {exc}"

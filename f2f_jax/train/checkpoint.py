@@ -28,7 +28,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from f2f_jax.config import Config, GeometryConfig, NetConfig, SimConfig, TrainConfig
+from f2f_jax.config import SIM_PRESETS, Config, GeometryConfig, NetConfig, SimConfig, TrainConfig
 from f2f_jax.errors import CheckpointError
 
 log = logging.getLogger(__name__)
@@ -46,10 +46,18 @@ def config_to_dict(cfg: Config) -> dict:
     return json.loads(json.dumps(dataclasses.asdict(cfg)))
 
 
+# Fields added after runs were first saved, with the value those runs were made with: a run
+# directory from before the simulation presets was simulated by what is now "reference".
+_BEFORE_PRESETS = {"GeometryConfig": SIM_PRESETS["reference"]["geometry"],
+                   "SimConfig": SIM_PRESETS["reference"]["sim"]}
+
+
 def _section(cls, values: dict):
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name not in values:
+            if f.name in _BEFORE_PRESETS.get(cls.__name__, {}):
+                kwargs[f.name] = _BEFORE_PRESETS[cls.__name__][f.name]
             continue
         v = values[f.name]
         if isinstance(v, list):  # tuples (possibly of tuples) came back as lists

@@ -1,0 +1,120 @@
+"""Simulation presets (the fast default ends phases at rest) and the object tiles option.
+
+The agreement of the two on many triples is a benchmark (``benchmarks/sim_agreement.py``); here
+are the behaviours it relies on: the presets are what they say, old run directories keep the
+simulator they were made with, tiles cover what a finger closing along x can touch and nothing
+beside it, and ending a phase at rest does not change a clear outcome.
+"""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from f2f_jax import config
+from f2f_jax.config import voxel_centres
+from f2f_jax.errors import VolumeError
+from f2f_jax.geometry import imprint_fingers
+from f2f_jax.geometry.hulls import finger_hulls, hull_fit, points_in_hulls
+from f2f_jax.geometry.object_tiles import depth_map, tile_object_hulls
+from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
+from f2f_jax.sim import build_model, evaluate, run_trials
+from f2f_jax.train.checkpoint import config_from_dict, config_to_dict
+
+
+def union_tsdf(boxes, cfg) -> np.ndarray:
+    """Truncated signed distance of a union of axis-aligned boxes [(lo, hi), ...] (metres)."""
+    pts = np.stack(np.meshgrid(*voxel_centres(cfg.geometry), indexing="ij"), -1)
+    sdf = np.full(pts.shape[:3], np.inf)
+    for lo, hi in boxes:
+        centre, half = (np.add(lo, hi)) / 2, (np.subtract(hi, lo)) / 2
+        q = np.abs(pts - centre) - half
+        sdf = np.minimum(sdf, np.linalg.norm(np.maximum(q, 0.0), axis=-1) + np.minimum(q.max(-1), 0.0))
+    return np.clip(sdf / cfg.geometry.truncation, -1, 1).astype(np.float32)
+
+
+def test_presets_set_what_they_name_and_the_configs_are_fast():
+    for name in ("tiny", "default", "paper"):
+        assert config.sim_preset_name(config.get(name)) == "fast"
+    ref = config.with_sim_preset(config.default(), "reference")
+    assert config.sim_preset_name(ref) == "reference"
+    assert ref.sim.rest_speed == 0.0 and config.default().sim.rest_speed > 0
+    # only the preset's fields change
+    assert ref.net == config.default().net and ref.sim.grip_force == config.default().sim.grip_force
+    custom = ref.replace(sim=dataclasses.replace(ref.sim, rest_speed=0.01))
+    assert config.sim_preset_name(custom) == "custom"
+    with pytest.raises(ValueError, match="unknown simulation preset 'exact'"):
+        config.with_sim_preset(ref, "exact")
+    bad = ref.replace(geometry=dataclasses.replace(ref.geometry, object_method="vhacd"))
+    with pytest.raises(ValueError, match="unknown object_method 'vhacd'"):
+        object_pieces(np.ones((40, 40, 40), np.float32), bad)
+
+
+def test_a_run_saved_before_the_presets_loads_as_the_reference():
+    saved = config_to_dict(config.default())
+    del saved["geometry"]["object_method"], saved["sim"]["rest_speed"]
+    cfg = config_from_dict(saved)
+    assert config.sim_preset_name(cfg) == "reference"
+    assert config_from_dict(config_to_dict(config.default())) == config.default()
+
+
+def test_depth_map_reads_where_the_object_begins_and_ends_along_x(cfg):
+    box = union_tsdf([((-0.02, -0.01, 0.0015), (0.01, 0.01, 0.03))], cfg)
+    x_min, x_max = depth_map(box, cfg)
+    iy, iz = 20, 10  # a line through the box
+    assert abs(x_min[iy, iz] + 0.02) < 2e-4 and abs(x_max[iy, iz] - 0.01) < 2e-4
+    assert np.isnan(x_min[2, 10]) and np.isnan(x_max[20, 30])  # lines that miss it
+
+
+def test_tiles_follow_a_step_seen_along_x_and_do_not_fill_beside_it(cfg):
+    # a low slab over the whole width and a tower on its -x half: lines along x above the slab
+    # end at the tower's +x face, so a piece there must not reach into the empty corner
+    step = union_tsdf([((-0.027, -0.02, 0.0015), (0.027, 0.02, 0.015)),
+                       ((-0.027, -0.02, 0.0015), (-0.005, 0.02, 0.055))], cfg)
+    hulls = tile_object_hulls(step, cfg)
+    fit = hull_fit(step, hulls, cfg)
+    assert fit["max_intrusion_m"] < 1.5 * cfg.geometry.voxel_size, fit
+    assert fit["iou"] > 0.9, fit
+    corner = np.array([[0.015, 0.0, 0.04], [0.005, 0.01, 0.03]])  # empty, beside the tower
+    assert not points_in_hulls(hulls, corner).any()
+
+
+def test_tiles_fill_a_hollow_no_finger_closing_along_x_can_reach(cfg):
+    # a box open at the top (a tray): its well is enclosed along x by the walls
+    walls = [((-0.027, -0.027, 0.0015), (0.027, 0.027, 0.006)),
+             ((-0.027, -0.027, 0.0015), (-0.021, 0.027, 0.04)),
+             ((0.021, -0.027, 0.0015), (0.027, 0.027, 0.04)),
+             ((-0.027, -0.027, 0.0015), (0.027, -0.021, 0.04)),
+             ((-0.027, 0.021, 0.0015), (0.027, 0.027, 0.04))]
+    tray = union_tsdf(walls, cfg)
+    hulls = tile_object_hulls(tray, cfg)
+    assert points_in_hulls(hulls, [[0.0, 0.0, 0.03]]).all()  # the well's middle
+    assert not points_in_hulls(hulls, [[0.0, 0.0, 0.05], [0.035, 0.0, 0.02]]).any()
+
+
+def test_object_pieces_many_makes_each_distinct_volume_once_and_reports_bad_ones(cfg, sphere_tsdf):
+    cfg = cfg.replace(geometry=dataclasses.replace(cfg.geometry, object_method="tiles"))
+    got = object_pieces_many([sphere_tsdf, np.ones_like(sphere_tsdf), sphere_tsdf], cfg)
+    assert got[0] is got[2] and got[0].n_pieces >= 1
+    assert isinstance(got[1], str) and "empty" in got[1]
+    with pytest.raises(VolumeError):
+        object_pieces(np.ones_like(sphere_tsdf), cfg)
+
+
+def test_ending_phases_at_rest_keeps_the_outcome_and_saves_steps(sphere_tsdf):
+    fast = config.tiny()
+    full = fast.replace(sim=dataclasses.replace(fast.sim, rest_speed=0.0))
+    hulls = object_pieces(sphere_tsdf, fast)
+    left, right = imprint_fingers(sphere_tsdf, fast.geometry)
+    model = build_model(hulls, finger_hulls(left, fast), finger_hulls(right, fast), fast)
+    early, late = run_trials(model, fast), run_trials(model, full)
+    np.testing.assert_array_equal(early.outcome, late.outcome)
+    assert early.outcome.all(), early.outcome  # the sphere in its imprint: every trial holds
+    # (tiny phases are short already: ~20% here, about half with the default phases)
+    assert early.steps < 0.9 * late.steps, (early.steps, late.steps)
+    # held at the same height: the holds cut short had nothing left to change
+    np.testing.assert_allclose(early.heights, late.heights, atol=2e-3)
+    # evaluate(preset=...) applies the preset to the config it is given
+    out = evaluate([sphere_tsdf], [left], [right], cfg=full, preset="fast", object_hulls=hulls,
+                   threads=1)
+    np.testing.assert_array_equal(out[0], early.outcome)
