@@ -1,0 +1,109 @@
+"""The statistics, argument checks and perturbed fingers of benchmarks/sim_agreement.py."""
+
+import importlib
+
+import numpy as np
+import pytest
+
+agreement = importlib.import_module("benchmarks.sim_agreement")
+
+KINDS = ["imprint", "imprint", "wsg50", "cut"]
+
+
+def _outcomes() -> np.ndarray:
+    """Four hand-made [11] outcome vectors: all held, none held, grasp only, grasp + S1 + R-30."""
+    out = np.zeros((4, 11), np.uint8)
+    out[0] = 1
+    out[2, 0] = 1
+    out[3, [0, 1, 5]] = 1
+    return out
+
+
+def test_identical_outcomes_agree_fully():
+    a = _outcomes()
+    s = agreement.agreement_stats(a, a.copy(), KINDS)
+    assert s["agreement_per_trial"] == 1.0 and s["agreement_vectors"] == 1.0
+    assert set(s["agreement_per_trial_kind"].values()) == {1.0}
+    assert s["agreement_per_kind"] == {"imprint": 1.0, "wsg50": 1.0, "cut": 1.0}
+    assert s["rate_gap_max"] == {"grasp": 0.0, "trials": 0.0}
+
+
+def test_one_flipped_trial():
+    a = _outcomes()
+    b = a.copy()
+    b[3, 1] = 0  # the cut pair's S1 fails under the judge
+    s = agreement.agreement_stats(a, b, KINDS)
+    assert s["agreement_per_trial"] == pytest.approx(1 - 1 / 44)
+    assert s["agreement_vectors"] == 0.75
+    assert s["agreement_per_trial_kind"]["S1"] == 0.75
+    assert s["agreement_per_trial_kind"]["grasp"] == 1.0
+    assert s["agreement_per_kind"]["cut"] == pytest.approx(10 / 11)
+    assert s["agreement_per_kind"]["imprint"] == 1.0
+    # the cut kind passes 3 trials under one, 2 under the other: a gap of 1/11 trials
+    assert s["rate_gap_max"] == {"grasp": 0.0, "trials": pytest.approx(100 / 11)}
+
+
+def test_rates_per_kind():
+    a = _outcomes()
+    s = agreement.agreement_stats(a, np.zeros_like(a), KINDS, labels=("fast", "reference"))
+    assert list(s["rates"]) == ["imprint", "wsg50", "cut", "all"]
+    assert s["rates"]["imprint"]["fast"] == dict(grasp=0.5, trials=5.5, S=0.5, R=0.5)
+    assert s["rates"]["cut"]["fast"] == dict(grasp=1.0, trials=3.0, S=0.25, R=pytest.approx(1 / 6))
+    assert s["rates"]["all"]["fast"]["grasp"] == 0.75
+    assert s["rates"]["all"]["fast"]["trials"] == (11 + 0 + 1 + 3) / 4
+    assert s["rates"]["all"]["reference"] == dict(grasp=0.0, trials=0.0, S=0.0, R=0.0)
+    assert s["rate_gap_max"]["grasp"] == 100.0  # wsg50 and cut: held by one preset only
+    assert s["rate_gap_max"]["trials"] == pytest.approx(100 * 5.5 / 11)  # imprint
+
+
+def test_grasp_confusion_counts():
+    a = np.zeros((5, 11), np.uint8)
+    b = np.zeros((5, 11), np.uint8)
+    a[[0, 1, 2], 0] = 1  # judged holds 0, 1, 2
+    b[[1, 2, 3], 0] = 1  # judge holds 1, 2, 3
+    s = agreement.agreement_stats(a, b, ["imprint"] * 5)
+    assert s["grasp_confusion"] == [[1, 1], [1, 2]]  # [judged][judge]: triple 4 neither, 3 judge only, 0 judged only
+
+
+def test_inconsistent_inputs_raise():
+    a = _outcomes()
+    with pytest.raises(ValueError, match="labels"):
+        agreement.agreement_stats(a, a, KINDS, labels=("fast", "fast"))
+    with pytest.raises(ValueError, match="outcome arrays"):
+        agreement.agreement_stats(a, a[:3], KINDS)
+    with pytest.raises(ValueError, match="outcome arrays"):
+        agreement.agreement_stats(a, a, KINDS[:3])
+
+
+@pytest.mark.parametrize("argv", [
+    ["--n", "0"],
+    ["--n-objects", "0"],
+    ["--presets", "fast", "bogus"],
+    ["--presets", "fast"],
+    ["--objects", "/nonexistent/meshes"],
+])
+def test_bad_arguments_exit_2(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        agreement.main(argv)
+    assert exc.value.code == 2
+    assert capsys.readouterr().err  # argparse explains why
+
+
+def test_empty_objects_directory_is_refused(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        agreement.main(["--objects", str(tmp_path)])
+    assert exc.value.code == 2
+    assert "no mesh files" in capsys.readouterr().err
+
+
+def test_perturbed_finger_is_feasible_and_new(cfg):
+    from f2f_jax.data import builtin_object
+    from f2f_jax.geometry import imprint_fingers, is_feasible, mesh_to_tsdf
+
+    left, _ = imprint_fingers(mesh_to_tsdf(builtin_object(0), cfg.geometry), cfg.geometry)
+    finger = agreement.perturbed_finger(left, np.random.default_rng(0), cfg.geometry)
+    assert finger is not None and finger.shape == left.shape and finger.dtype == np.float32
+    assert is_feasible(finger, cfg.geometry)
+    assert finger.min() >= -1.0 and finger.max() <= 1.0
+    flipped = np.count_nonzero((finger < 0) != (left < 0))
+    assert 0 < flipped < 0.1 * left.size  # a different finger, still close to the imprint
