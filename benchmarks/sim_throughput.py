@@ -1,22 +1,32 @@
-"""Grasp-simulation throughput: full 11-trial evaluations per second, backends side by side.
+"""Grasp-simulation throughput: full 11-trial evaluations per second, presets and peers side by side.
 
-    python benchmarks/sim_throughput.py                 # 64 builtin imprint triples
-    python benchmarks/sim_throughput.py --n 16 --pybullet-n 8 --json out.json
+    python benchmarks/sim_throughput.py                       # 32 builtin imprint triples
+    python benchmarks/sim_throughput.py --n 16 --per-core-n 8 --json out.json
+    python benchmarks/sim_throughput.py --objects DIR --n 16  # a mesh directory, e.g. random_urdfs
 
-Every backend gets the same triples (imprint finger pairs of builtin objects, object hulls
-decomposed once beforehand and not timed).  Printed: evaluations/s, physics steps/s, and the
-ratios per core measured in this one run.  The PyBullet peer (the original Fit2Form protocol,
-``benchmarks/pybullet_original.py``) needs the ``pybullet`` extra; without it that column is
-skipped.
+Every simulator gets the same triples: imprint finger pairs of builtin objects (or of the first
+meshes of ``--objects DIR``).  Object pieces are made beforehand (coacd, cached on disk) and not
+counted in the evaluation times; making them is timed apart, uncached and on one core, for the
+default preset's method on ``--meshing-n`` objects (``object_meshing_s``) and for the object
+tiles option on all of them (``tiles_meshing_s``).
+
+Measured in this one run: the default ("fast") preset and the ``reference`` preset of plain
+MuJoCo on all ``--threads`` cores over ``--n`` triples, and each on one thread over the first
+``--per-core-n`` of them, the PyBullet original protocol (``benchmarks/pybullet_original.py``,
+one core, on the reference's hulls; needs the ``pybullet`` extra, else skipped) on the same
+subset.  Printed: evaluations/s, per core, physics steps/s, steps per evaluation and grasp
+success per row, and the per-core ratios fast / reference and fast / PyBullet.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,91 +34,134 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from f2f_jax import config  # noqa: E402
-from f2f_jax import sim  # noqa: E402
-from f2f_jax.data import builtin_objects  # noqa: E402
-from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf  # noqa: E402
-from f2f_jax.geometry.hulls import finger_hulls, object_hulls  # noqa: E402
+from f2f_jax import config, sim  # noqa: E402
+from f2f_jax.geometry import imprint_fingers  # noqa: E402
+from f2f_jax.geometry.hulls import finger_hulls  # noqa: E402
+from f2f_jax.geometry.pieces import object_pieces, object_pieces_many  # noqa: E402
+from sim_agreement import load_objects  # noqa: E402
 
 
-def imprint_triples(n: int, seed: int, cfg):
-    objs, lefts, rights = [], [], []
-    for mesh in builtin_objects(n, seed=seed):
-        tsdf = mesh_to_tsdf(mesh, cfg.geometry)
-        left, right = imprint_fingers(tsdf, cfg.geometry)
-        objs.append(tsdf), lefts.append(left), rights.append(right)
-    return np.stack(objs), np.stack(lefts), np.stack(rights)
+def imprint_triples(tsdfs: np.ndarray, cfg):
+    """[N, R, R, R] object volumes -> (objects, lefts, rights) with the imprint pairs."""
+    pairs = [imprint_fingers(t, cfg.geometry) for t in tsdfs]
+    return tsdfs, np.stack([p[0] for p in pairs]), np.stack([p[1] for p in pairs])
+
+
+def meshing_seconds(tsdfs, cfg) -> np.ndarray:
+    """Per-object seconds of making object pieces under cfg, uncached (a fresh cache), one core."""
+    seconds = []
+    with tempfile.TemporaryDirectory(prefix="f2f-meshing-") as tmp:
+        for t in tsdfs:
+            start = time.perf_counter()
+            object_pieces(t, cfg, cache_dir=tmp)
+            seconds.append(time.perf_counter() - start)
+    return np.array(seconds)
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--n", type=int, default=64, help="triples for the MuJoCo backend")
-    p.add_argument("--pybullet-n", type=int, default=16, help="of those, triples for the PyBullet peer")
+    p.add_argument("--n", type=int, default=32, help="triples for the all-core runs (default 32)")
+    p.add_argument("--per-core-n", "--pybullet-n", dest="per_core_n", type=int, default=8,
+                   help="of those, triples for the one-thread runs and the PyBullet peer (default 8)")
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--config", default="default", choices=sorted(config.CONFIGS))
+    p.add_argument("--objects", type=Path, default=None, help="a mesh directory (default: builtin objects)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-pybullet", action="store_true", help="skip the PyBullet peer")
+    p.add_argument("--meshing-n", type=int, default=2,
+                   help="objects whose pieces are timed uncached (coacd: 13-30 s each; default 2)")
     p.add_argument("--json", type=Path, default=None)
     args = p.parse_args(argv)
-    cfg = config.get(args.config)
+    if args.n < 1 or args.per_core_n < 0 or args.threads < 1 or args.meshing_n < 1:
+        p.error("--n, --threads and --meshing-n must be >= 1, --per-core-n >= 0")
+    if args.objects is not None and not args.objects.is_dir():
+        p.error(f"--objects {args.objects}: no such directory")
+    base = config.get(args.config)
+    presets = {name: config.with_sim_preset(base, name) for name in ("fast", "reference")}
     cores = os.cpu_count()
-    print(f"machine: {platform.processor() or platform.machine()}, {cores} cores; "
-          f"config {args.config}; {args.n} builtin imprint triples")
+    print(f"machine: {platform.processor() or platform.machine()}, {cores} cores; config {args.config}; "
+          f"{args.n} imprint triples of {args.objects or 'builtin objects'}")
 
     t = time.perf_counter()
-    objs, lefts, rights = imprint_triples(args.n, args.seed, cfg)
-    hulls = [object_hulls(o, cfg) for o in objs]
-    print(f"prepared volumes and object hulls in {time.perf_counter() - t:.1f} s (not timed below)")
+    tsdfs, _ = load_objects(args.n, args.seed, args.objects, base.geometry)
+    if len(tsdfs) == 0:
+        p.error(f"--objects {args.objects}: no mesh could be read")
+    objs, lefts, rights = imprint_triples(tsdfs, base)
+    k = min(args.per_core_n, len(objs))
+    pieces = {name: object_pieces_many(list(objs), cfg, workers=args.threads, progress=False)
+              for name, cfg in presets.items()}
+    print(f"prepared {len(objs)} triples and their object pieces in {time.perf_counter() - t:.1f} s "
+          "(cached coacd pieces; not timed below)")
+    meshing = meshing_seconds(objs[:args.meshing_n], presets["fast"])
+    tiles_cfg = base.replace(geometry=dataclasses.replace(base.geometry, object_method="tiles"))
+    tiles = meshing_seconds(objs, tiles_cfg)
+    print(f"object meshing, one core, uncached: default preset ({presets['fast'].geometry.object_method}) "
+          f"{meshing.mean():.2f} s mean, {meshing.max():.2f} s max over {len(meshing)} objects; "
+          f"object tiles {tiles.mean():.3f} s mean, {tiles.max():.3f} s max over {len(tiles)}")
 
     rows = {}
-    t = time.perf_counter()
-    out, info = sim.evaluate(objs, lefts, rights, backend="mujoco", cfg=cfg, threads=args.threads,
-                             object_hulls=hulls, return_info=True, progress=False)
-    sec = time.perf_counter() - t
-    rows["mujoco"] = dict(evals=len(objs), seconds=sec, steps=info.total_steps, workers=args.threads,
-                          grasp_rate=float(out[:, 0].mean()))
 
-    pyb = None
-    if args.pybullet_n > 0:
+    def run(label, name, n, threads):
+        cfg = presets[name]
+        start = time.perf_counter()
+        out, info = sim.evaluate(objs[:n], lefts[:n], rights[:n], cfg=cfg, threads=threads,
+                                 object_hulls=pieces[name][:n], return_info=True, progress=False)
+        rows[label] = dict(evals=n, seconds=time.perf_counter() - start, steps=info.total_steps,
+                           workers=threads, grasp_rate=float(out[:, 0].mean()))
+
+    for name in presets:
+        run(name, name, len(objs), args.threads)
+    if k > 0:
+        for name in presets:
+            run(f"{name} 1 thread", name, k, 1)
+    if k > 0 and not args.no_pybullet:
         try:
             import pybullet_original as peer
         except ImportError as exc:
             print(f"PyBullet peer skipped: {exc} (pip install -e '.[pybullet]')")
         else:
-            k = min(args.pybullet_n, len(objs))
-            lh = [finger_hulls(f, cfg) for f in lefts[:k]]
-            rh = [finger_hulls(f, cfg) for f in rights[:k]]
-            t = time.perf_counter()
-            pout, stats = peer.evaluate_original(hulls[:k], lh, rh, cfg=cfg)
-            sec = time.perf_counter() - t
-            rows["pybullet_original"] = dict(evals=k, seconds=sec, steps=int(stats["steps"]), workers=1,
+            ref = presets["reference"]
+            lh = [finger_hulls(f, ref) for f in lefts[:k]]
+            rh = [finger_hulls(f, ref) for f in rights[:k]]
+            start = time.perf_counter()
+            pout, stats = peer.evaluate_original(pieces["reference"][:k], lh, rh, cfg=ref)
+            rows["pybullet_original"] = dict(evals=k, seconds=time.perf_counter() - start,
+                                             steps=int(stats["steps"]), workers=1,
                                              grasp_rate=float(pout[:, 0].mean()))
-            # the same k triples through MuJoCo on one thread: the per-core comparison
-            t = time.perf_counter()
-            sim.evaluate(objs[:k], lefts[:k], rights[:k], backend="mujoco", cfg=cfg, threads=1,
-                         object_hulls=hulls[:k], progress=False)
-            rows["mujoco_1thread_same"] = dict(evals=k, seconds=time.perf_counter() - t, steps=None,
-                                               workers=1, grasp_rate=None)
-            pyb = rows["pybullet_original"]
 
-    print(f"\n{'backend':22s} {'evals':>6s} {'seconds':>8s} {'evals/s':>8s} {'per core':>9s} "
-          f"{'steps/s':>9s} {'grasp':>6s}")
-    for name, r in rows.items():
+    print(f"\n{'simulator':22s} {'evals':>6s} {'seconds':>8s} {'evals/s':>8s} {'per core':>9s} "
+          f"{'steps/s':>9s} {'steps/eval':>10s} {'grasp':>6s}")
+    for label, r in rows.items():
         eps = r["evals"] / r["seconds"]
-        sps = f"{r['steps'] / r['seconds']:9.0f}" if r["steps"] else f"{'':9s}"
-        gr = f"{r['grasp_rate']:6.2f}" if r["grasp_rate"] is not None else ""
-        print(f"{name:22s} {r['evals']:6d} {r['seconds']:8.2f} {eps:8.2f} {eps / r['workers']:9.2f} {sps} {gr}")
+        print(f"{label:22s} {r['evals']:6d} {r['seconds']:8.2f} {eps:8.2f} {eps / r['workers']:9.2f} "
+              f"{r['steps'] / r['seconds']:9.0f} {r['steps'] / r['evals']:10.0f} {r['grasp_rate']:6.2f}")
 
-    result = {"cores": cores, "n": args.n, "config": args.config,
-              "mujoco_evals_per_s": rows["mujoco"]["evals"] / rows["mujoco"]["seconds"],
-              "mujoco_steps_per_s": rows["mujoco"]["steps"] / rows["mujoco"]["seconds"],
-              "mujoco_steps_per_eval": rows["mujoco"]["steps"] / rows["mujoco"]["evals"]}
-    if pyb is not None:
-        same = rows["mujoco_1thread_same"]
-        result["pybullet_evals_per_s"] = pyb["evals"] / pyb["seconds"]
-        result["pybullet_steps_per_eval"] = pyb["steps"] / pyb["evals"]
-        result["ratio_mujoco_vs_pybullet"] = (same["evals"] / same["seconds"]) / result["pybullet_evals_per_s"]
-        print(f"\nper core, same {pyb['evals']} triples: MuJoCo / PyBullet-original = "
-              f"{result['ratio_mujoco_vs_pybullet']:.1f}x (target >= 30x)")
+    def rate(label):
+        return rows[label]["evals"] / rows[label]["seconds"]
+
+    fast, ref = rows["fast"], rows["reference"]
+    result = {"cores": cores, "n": len(objs), "config": args.config,
+              "objects": str(args.objects or "builtin"),
+              "mujoco_evals_per_s": rate("fast"),
+              "mujoco_steps_per_s": fast["steps"] / fast["seconds"],
+              "mujoco_steps_per_eval": fast["steps"] / fast["evals"],
+              "reference_evals_per_s": rate("reference"),
+              "reference_steps_per_eval": ref["steps"] / ref["evals"],
+              "object_meshing_s": {"mean": float(meshing.mean()), "max": float(meshing.max()),
+                                   "n": len(meshing), "method": presets["fast"].geometry.object_method},
+              "tiles_meshing_s": {"mean": float(tiles.mean()), "max": float(tiles.max())}}
+    if k > 0:
+        result["ratio_fast_vs_reference"] = rate("fast 1 thread") / rate("reference 1 thread")
+        print(f"\nper core, same {k} triples: fast / reference = {result['ratio_fast_vs_reference']:.2f}x "
+              f"(target >= 10x)")
+    if "pybullet_original" in rows:
+        result["pybullet_evals_per_s"] = rate("pybullet_original")
+        result["pybullet_steps_per_eval"] = rows["pybullet_original"]["steps"] / k
+        result["ratio_mujoco_vs_pybullet"] = rate("fast 1 thread") / result["pybullet_evals_per_s"]
+        result["ratio_reference_vs_pybullet"] = rate("reference 1 thread") / result["pybullet_evals_per_s"]
+        print(f"per core, same {k} triples: fast / PyBullet-original = "
+              f"{result['ratio_mujoco_vs_pybullet']:.1f}x (target >= 30x); reference / PyBullet = "
+              f"{result['ratio_reference_vs_pybullet']:.1f}x")
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
         print(f"wrote {args.json}")
