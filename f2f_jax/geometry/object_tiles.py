@@ -60,17 +60,10 @@ def depth_map(obj_tsdf, cfg=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 class _Map:
-    """The depth map with its column footprints' corners, and the misfit of a tile's hull."""
+    """The depth map, its tiles' hull points and the misfit of a tile's hull."""
 
     def __init__(self, x_min: np.ndarray, x_max: np.ndarray, g):
-        self.g = g
         self.x_min, self.x_max = x_min, x_max
-        # corner (a, b) of the footprint grid is shared by columns (a-1..a, b-1..b); it takes
-        # the outermost depth of the solid ones among them
-        lo = np.pad(np.where(np.isfinite(x_min), x_min, np.inf), 1, constant_values=np.inf)
-        hi = np.pad(np.where(np.isfinite(x_max), x_max, -np.inf), 1, constant_values=-np.inf)
-        self.c_lo = np.minimum(np.minimum(lo[:-1, :-1], lo[1:, :-1]), np.minimum(lo[:-1, 1:], lo[1:, 1:]))
-        self.c_hi = np.maximum(np.maximum(hi[:-1, :-1], hi[1:, :-1]), np.maximum(hi[:-1, 1:], hi[1:, 1:]))
         edges = np.arange(x_min.shape[0] + 1) * g.voxel_size
         self.corner_y, self.corner_z = edges - g.cube_size / 2, edges
         centres = (np.arange(x_min.shape[0]) + 0.5) * g.voxel_size
@@ -83,19 +76,20 @@ class _Map:
         y0, y1, z0, z1 = box
         ci = np.unique(np.r_[np.arange(y0, y1 + 1, stride), y1])
         cj = np.unique(np.r_[np.arange(z0, z1 + 1, stride), z1])
-        lo = self._block(self.c_lo, box, np.inf, ci, cj, np.minimum)
-        hi = self._block(self.c_hi, box, -np.inf, ci, cj, np.maximum)
+        lo = self._corners(self.x_min, box, np.inf, ci, cj, np.minimum)
+        hi = self._corners(self.x_max, box, -np.inf, ci, cj, np.maximum)
         ii, jj = np.nonzero(np.isfinite(lo))
         if len(ii) == 0:
             return None
         y, z = self.corner_y[ci[ii]], self.corner_z[cj[jj]]
         return np.concatenate([np.stack([lo[ii, jj], y, z], 1), np.stack([hi[ii, jj], y, z], 1)])
 
-    def _block(self, corners, box, fill, ci, cj, op):
-        """Corner depths of a tile: its own columns only (corners on its border ignore the
-        neighbours outside it), sampled at corner rows ci and columns cj."""
+    @staticmethod
+    def _corners(src, box, fill, ci, cj, op):
+        """Depths at a tile's footprint corners, sampled at corner rows ci and columns cj: a
+        corner shared by several of the tile's solid columns takes the outermost of their depths
+        (op: np.minimum for x_min, np.maximum for x_max); columns outside the tile do not count."""
         y0, y1, z0, z1 = box
-        src = self.x_min if fill > 0 else self.x_max
         own = np.where(np.isfinite(src[y0:y1, z0:z1]), src[y0:y1, z0:z1], fill)
         own = np.pad(own, 1, constant_values=fill)
         block = op(op(own[:-1, :-1], own[1:, :-1]), op(own[:-1, 1:], own[1:, 1:]))
