@@ -52,3 +52,29 @@ def test_mjx_grasp_agrees_with_mujoco_and_compiles_once(sphere_models, tiny_cfg)
                                               (b.fields, b.convex, b.planes))
     assert struct(again) == struct(batch)
     assert sim._program("grasp", 2)._cache_size() == 1
+
+
+def test_evaluate_mjx_builds_each_feasible_candidate_and_maps_outcomes_back(monkeypatch, sphere_tsdf,
+                                                                           tiny_cfg):
+    """The host side of evaluate(backend="mjx"): models for the feasible candidates only, in input
+    order, their outcomes written back to their rows (the batch itself is mocked: compiling it
+    costs minutes on a CPU and is tested above)."""
+    from f2f_jax.geometry import imprint_fingers
+    from f2f_jax.sim import evaluate
+
+    seen = []
+
+    def fake_batch(models, cfg):
+        seen.extend(models)
+        out = np.zeros((len(models), 11), np.uint8)
+        out[:, 0] = np.arange(1, len(models) + 1)  # tells the rows apart
+        return dict(outcome=out, steps=np.full(len(models), 7), unstable=np.zeros(len(models)))
+
+    monkeypatch.setattr(mjx_batch, "evaluate_models", fake_batch)
+    left, right = imprint_fingers(sphere_tsdf, tiny_cfg.geometry)
+    empty = np.ones_like(left)  # infeasible: never built
+    out, info = evaluate([sphere_tsdf] * 3, [left, empty, left], [right] * 3, cfg=tiny_cfg,
+                         backend="mjx", return_info=True)
+    assert len(seen) == 2 and all(m.ngeom == seen[0].ngeom for m in seen)
+    assert out[:, 0].tolist() == [1, 0, 2] and info.infeasible.tolist() == [False, True, False]
+    assert info.steps.tolist() == [7, 0, 7]

@@ -113,8 +113,8 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     progress: tqdm bars; None shows the trials bar when N > 32 and, with coacd objects, the
         object-hulls bar when more than one distinct object needs hulls (~15 s each, uncached).
     object_hulls: precomputed object pieces (Hulls), one for all or a length-N sequence; default
-        makes them by ``cfg.geometry.object_method`` (``geometry.pieces.object_pieces``: boxes in
-        milliseconds, or coacd cached on disk in ``cache_dir``), once per distinct object.
+        makes them by ``cfg.geometry.object_method`` (``geometry.pieces.object_pieces``: coacd
+        cached on disk in ``cache_dir``, or tiles in ~0.15 s), once per distinct object.
     return_info: also return an EvaluationInfo.
     preset: a simulation preset of ``config.SIM_PRESETS`` applied to cfg ("fast", the default
         of every config, or "reference"); None keeps cfg as it is.  The "mjx" backend runs every
@@ -243,7 +243,7 @@ def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir
                 raise F2FError(f"object hulls: {hulls}")
             models.append(build_model(hulls, finger_hulls(lefts[i], cfg),
                                       finger_hulls(rights[i], cfg), cfg, pad_collides=True,
-                                      max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS, boxes=False))
+                                      max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS))
             index.append(i)
         except (F2FError, ValueError) as exc:
             errors[int(i)] = f"{type(exc).__name__}: {exc}"
