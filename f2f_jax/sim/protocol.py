@@ -117,15 +117,16 @@ class GraspRunner:
     def _warning_count(self) -> int:
         return int(self.data.warning.number.sum())
 
+    def _finite(self) -> bool:
+        """False if MuJoCo warned since the trial began or the state is not finite."""
+        d = self.data
+        return (self._warning_count() == self._warnings and bool(np.all(np.isfinite(d.qpos)))
+                and bool(np.all(np.isfinite(d.qvel))))
+
     def healthy(self) -> bool:
         """False if MuJoCo warned since the trial began, the state is not finite or anything
         moves faster than ``max_speed``."""
-        d = self.data
-        if self._warning_count() != self._warnings:
-            return False
-        if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))):
-            return False
-        return self.speed() <= self.cfg.sim.max_speed
+        return self._finite() and self.speed() <= self.cfg.sim.max_speed
 
     def speed(self) -> float:
         """The fastest motion in the scene (m/s): the object's linear speed, its angular speed
@@ -156,12 +157,13 @@ class GraspRunner:
             mujoco.mj_step(self.model, self.data, nstep=k)
             done += k
             self.steps += k
-            if not self.healthy():
+            speed = self.speed() if self._finite() else np.inf  # healthy(), speed kept
+            if speed > s.max_speed:
                 raise Unstable(f"unstable state at t = {self.data.time:.3f} s")
             if stop_below is not None and self.object_height() < stop_below:
                 return False
             if rest_steps is not None:
-                if self.speed() >= s.rest_speed:
+                if speed >= s.rest_speed:
                     resting_since = None
                 elif resting_since is None:
                     resting_since = done
