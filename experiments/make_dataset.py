@@ -1,8 +1,10 @@
 """Simulate the pretraining grasp dataset (imprint, WSG50 and cut-from-shape finger pairs).
 
     python experiments/make_dataset.py --objects builtin --n 64 --out runs/dataset
+    python experiments/make_dataset.py ... --executor ray [--ray-address HOST:PORT]   # a cluster
 
-Kill it at any moment and rerun the same command: it continues where it stopped.
+Kill it at any moment and rerun the same command: it continues where it stopped.  With
+``--executor ray`` the simulation runs in Ray tasks and this process alone writes the store.
 """
 
 import argparse
@@ -14,6 +16,7 @@ from f2f_jax import config
 from f2f_jax.data.dataset import build_grasp_dataset
 from f2f_jax.data import load_or_make_objects
 from f2f_jax.data.store import GraspStore
+from f2f_jax.sim import ray_executor
 
 
 def main(argv=None) -> int:
@@ -27,11 +30,22 @@ def main(argv=None) -> int:
                    help="simulation preset (config.SIM_PRESETS): fast (default) or reference (coacd "
                         "objects, every phase at full length)")
     p.add_argument("--cut-pairs", type=int, default=2, help="pairs cut from other shapes per object")
-    p.add_argument("--batch", type=int, default=8, help="objects per stored chunk")
+    p.add_argument("--batch", type=int, default=None,
+                   help="objects per stored chunk (default 8; with --executor ray, 2 per cluster "
+                        "CPU, at least 8, so every CPU has work)")
     p.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
+    ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
     if args.n <= 0:
         p.error("--n must be positive")
+    if args.batch is not None and args.batch <= 0:
+        p.error("--batch must be positive")
+    if args.executor == "ray" and args.backend != "mujoco":
+        p.error("--executor ray runs the mujoco backend")
+    executor = ray_executor.executor_from_cli(args)
+    batch = args.batch or 8
+    if args.batch is None and executor == "ray":
+        batch = max(8, 2 * ray_executor.cluster_cpus(ray_executor.require_ray()))
     cfg = config.get(args.config)
     if args.sim_preset is not None:
         cfg = config.with_sim_preset(cfg, args.sim_preset)
@@ -39,8 +53,8 @@ def main(argv=None) -> int:
     tsdfs, names = load_or_make_objects(args.objects, args.n, args.seed, out / "objects", cfg.geometry)
     store = GraspStore(out / "store")
     store.clean_temporary()
-    summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=args.batch,
-                                  n_cut=args.cut_pairs, backend=args.backend)
+    summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=batch,
+                                  n_cut=args.cut_pairs, backend=args.backend, executor=executor)
     print(json.dumps({"rows": len(store), "this_run": summary}, indent=1))
     return 0
 

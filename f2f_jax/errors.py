@@ -19,3 +19,8 @@ class DecompositionError(F2FError, RuntimeError):
 
 class CheckpointError(F2FError, RuntimeError):
     """No usable checkpoint, or one made for another configuration."""
+
+
+class MissingExtraError(F2FError, ImportError):
+    """An optional part (ray, warp, pybullet) asked for without its extra installed; the message
+    names the install command."""

@@ -38,13 +38,15 @@ def pretraining_pairs(object_tsdfs: np.ndarray, index: int, rng: np.random.Gener
 
 def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config | None = None,
                         seed: int = 0, batch_objects: int = 8, n_cut: int = 2, backend: str = "mujoco",
-                        progress: bool = True) -> dict:
+                        progress: bool = True, executor: str = "threads") -> dict:
     """Simulate the pretraining pairs of every object into ``store``; resumable.
 
     object_tsdfs: [N, R, R, R]; names: N object names.  Work goes in batches of ``batch_objects``
     objects, each batch one atomic chunk keyed by its object names, so a killed run loses at most
     the batch in flight and a rerun skips finished objects.  The finger pairs of object i depend
-    only on (seed, i), never on what was already done.
+    only on (seed, i), never on what was already done.  executor: ``sim.evaluate``'s ("threads",
+    or "ray": each batch's simulation in Ray tasks; the store is still written here, by the
+    driver only).
     Returns counts and grasp success per kind for what this call simulated.
     """
     from f2f_jax import sim  # the data layer only needs the simulator here
@@ -66,7 +68,8 @@ def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config |
         objs = np.stack([object_tsdfs[i] for i, *_ in rows])
         lefts = np.stack([r[1] for r in rows])
         rights = np.stack([r[2] for r in rows])
-        outcomes = sim.evaluate(objs, lefts, rights, backend=backend, cfg=cfg, progress=False)
+        outcomes = sim.evaluate(objs, lefts, rights, backend=backend, cfg=cfg, progress=False,
+                                executor=executor)
         kinds = [r[3] for r in rows]
         store.append(objs, lefts, rights, outcomes, kind=kinds, names=[names[r[0]] for r in rows],
                      keys=[names[i] for i in batch])

@@ -955,7 +955,33 @@ def _save_atomic(path: Path, hulls: Hulls) -> None:
         raise
 
 
-def object_hulls(obj_tsdf, cfg=None, *, cache_dir: str | os.PathLike | None = None,
+def _cache_path(arr: np.ndarray, g: GeometryConfig, k: int, v: int, settings: CoacdSettings,
+                cache_dir) -> Path:
+    directory = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
+    return directory / f"{_cache_key(arr, g, k, v, settings)}.npz"
+
+
+def cached_object_hulls(obj_tsdf, cfg=None, *, cache_dir=None) -> Hulls | None:
+    """The cached ``object_hulls`` of a volume (default layout and settings), or None when
+    they were never made here.  Raises VolumeError for an invalid volume."""
+    g = _geom(cfg)
+    arr = check_tsdf(obj_tsdf, "object", g)
+    k, v = g.object_hulls, g.hull_vertices
+    return _load_cached(_cache_path(arr, g, k, v, CoacdSettings(), cache_dir), k, v)
+
+
+def store_object_hulls(obj_tsdf, hulls: Hulls, cfg=None, *, cache_dir=None) -> None:
+    """Cache hulls that ``object_hulls(obj_tsdf, cfg, cache_dir=None)`` made elsewhere (another
+    process or machine, e.g. a Ray worker), as ``object_hulls`` would have; atomic."""
+    g = _geom(cfg)
+    arr = check_tsdf(obj_tsdf, "object", g)
+    k, v = g.object_hulls, g.hull_vertices
+    if hulls.vertices.shape != (k, v, 3):
+        raise ValueError(f"hulls of layout {hulls.vertices.shape}, expected {(k, v, 3)}")
+    _save_atomic(_cache_path(arr, g, k, v, CoacdSettings(), cache_dir), hulls)
+
+
+def object_hulls(obj_tsdf, cfg=None, *, cache_dir: str | os.PathLike | None | bool = None,
                  max_pieces: int | None = None, max_vertices: int | None = None,
                  settings: CoacdSettings | None = None) -> Hulls:
     """Convex pieces of an object volume, computed once and cached on disk.
@@ -964,9 +990,10 @@ def object_hulls(obj_tsdf, cfg=None, *, cache_dir: str | os.PathLike | None = No
     (``tsdf_to_mesh``, metres, the object's local frame) is decomposed by coacd (``mesh_hulls``)
     unless its convex hull reaches at most a voxel into the empty space: then the hull is the
     one piece (coacd would cut a convex shape along the voxel staircase, slowly).
-    The result is cached as ``<sha1>.npz`` in cache_dir (default ``default_cache_dir()``), keyed
-    by the float32 volume bytes, the layout and the settings; writes are atomic and an unreadable
-    file is recomputed.  Returns Hulls [max_pieces (cfg.object_hulls), max_vertices, 3].
+    The result is cached as ``<sha1>.npz`` in cache_dir (default ``default_cache_dir()``; False:
+    no cache, neither read nor written), keyed by the float32 volume bytes, the layout and the
+    settings; writes are atomic and an unreadable file is recomputed.
+    Returns Hulls [max_pieces (cfg.object_hulls), max_vertices, 3].
     Raises VolumeError for an invalid or empty volume, DecompositionError if no piece can be made.
     """
     g = _geom(cfg)
@@ -974,11 +1001,12 @@ def object_hulls(obj_tsdf, cfg=None, *, cache_dir: str | os.PathLike | None = No
     k = max_pieces or g.object_hulls
     v = max_vertices or g.hull_vertices
     settings = settings or CoacdSettings()
-    directory = Path(cache_dir).expanduser() if cache_dir is not None else default_cache_dir()
-    path = directory / f"{_cache_key(arr, g, k, v, settings)}.npz"
-    cached = _load_cached(path, k, v)
-    if cached is not None:
-        return cached
+    use_cache = cache_dir is not False
+    path = _cache_path(arr, g, k, v, settings, cache_dir if use_cache else None)
+    if use_cache:
+        cached = _load_cached(path, k, v)
+        if cached is not None:
+            return cached
     start = time.perf_counter()
     name = f"object {path.stem[:10]}"
     mesh = tsdf_to_mesh(arr, g, name="object")
@@ -991,7 +1019,8 @@ def object_hulls(obj_tsdf, cfg=None, *, cache_dir: str | os.PathLike | None = No
     hulls = _layout(pieces, k, v, g, name)
     log.info("object hulls %s: %d pieces in %.1f s", path.stem[:10], hulls.n_pieces,
              time.perf_counter() - start)
-    _save_atomic(path, hulls)
+    if use_cache:
+        _save_atomic(path, hulls)
     return hulls
 
 

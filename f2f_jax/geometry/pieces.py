@@ -20,7 +20,8 @@ from tqdm.auto import tqdm
 
 from f2f_jax.config import Config, GeometryConfig
 from f2f_jax.errors import F2FError
-from f2f_jax.geometry.hulls import Hulls, object_hulls, object_hulls_many
+from f2f_jax.geometry.hulls import (Hulls, cached_object_hulls, object_hulls, object_hulls_many,
+                                    store_object_hulls)
 from f2f_jax.geometry.object_tiles import tile_object_hulls
 
 OBJECT_METHODS = ("tiles", "coacd")
@@ -34,7 +35,8 @@ def _geometry(cfg) -> GeometryConfig:
 
 
 def object_pieces(obj_tsdf, cfg=None, *, cache_dir=None) -> Hulls:
-    """An object volume's collision pieces by ``cfg.object_method``.
+    """An object volume's collision pieces by ``cfg.object_method``; cache_dir (coacd): where
+    they are cached (default ``hulls.default_cache_dir()``), False for no cache.
 
     obj_tsdf: [R, R, R], negative inside.  Returns Hulls [cfg.object_hulls, cfg.hull_vertices,
     3] in the object's frame.  Raises VolumeError for an invalid or empty volume,
@@ -44,6 +46,24 @@ def object_pieces(obj_tsdf, cfg=None, *, cache_dir=None) -> Hulls:
     if g.object_method == "tiles":
         return tile_object_hulls(obj_tsdf, g)
     return object_hulls(obj_tsdf, g, cache_dir=cache_dir)
+
+
+def cached_pieces(obj_tsdf, cfg=None, *, cache_dir=None) -> Hulls | None:
+    """The pieces ``object_pieces`` would read from its cache without computing, or None (tiles
+    are never cached: they cost less than reading a file).  Raises VolumeError for an invalid
+    volume."""
+    g = _geometry(cfg)
+    if g.object_method == "tiles":
+        return None
+    return cached_object_hulls(obj_tsdf, g, cache_dir=cache_dir)
+
+
+def keep_pieces(obj_tsdf, hulls: Hulls, cfg=None, *, cache_dir=None) -> None:
+    """Cache pieces that ``object_pieces(obj_tsdf, cfg, cache_dir=False)`` made in another process
+    (a Ray worker), where ``object_pieces`` would have cached them; nothing for tiles."""
+    g = _geometry(cfg)
+    if g.object_method == "coacd":
+        store_object_hulls(obj_tsdf, hulls, g, cache_dir=cache_dir)
 
 
 def object_pieces_many(objects, cfg=None, *, cache_dir=None, workers: int | None = None,

@@ -1,9 +1,11 @@
-"""Reference backend: plain MuJoCo on CPU threads, one model per candidate.
+"""Reference backend: plain MuJoCo on CPUs, one model per candidate.
 
 Each candidate (object, left finger, right finger) becomes its own compiled model
 (``scene.build_model``) and runs the 11 trials (``protocol.run_trials``) in a worker thread;
-MuJoCo releases the GIL inside ``mj_step``, so threads scale over cores.  Results depend only on
-the inputs: each candidate is simulated alone, single-threaded, from the same initial state.
+MuJoCo releases the GIL inside ``mj_step``, so threads scale over cores.  Past one machine,
+``executor="ray"`` runs the same per-candidate work in Ray tasks (``sim.ray_executor``).
+Results depend only on the inputs: each candidate is simulated alone, single-threaded, from the
+same initial state, so both executors give the same outcomes bit for bit.
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ log = logging.getLogger(__name__)
 
 # Above this many candidates a progress bar is shown when progress=None.
 _AUTO_PROGRESS = 32
+EXECUTORS = ("threads", "ray")
 
 
 @dataclass
@@ -86,8 +89,8 @@ def _object_offsets(object_xy, n: int) -> np.ndarray | None:
     return xy
 
 
-def _simulate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config,
-              object_xy=None) -> TrialResult:
+def simulate_candidate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config,
+                       object_xy=None) -> TrialResult:
     """Hulls, model and trials of one feasible candidate; any geometry error is a failure.
     object_xy: None or (x, y) m, the object's shift on the floor (``scene.build_model``)."""
     place = {} if object_xy is None else {"object_xy": (float(object_xy[0]), float(object_xy[1]))}
@@ -102,14 +105,22 @@ def _simulate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config
 def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | None = None,
              threads: int | None = None, progress: bool | None = None, object_hulls=None,
              cache_dir=None, return_info: bool = False, object_xy=None,
-             preset: str | None = None):
+             preset: str | None = None, executor: str = "threads", ray_address: str | None = None,
+             task_size: int | None = None):
     """Simulate the 11 trials of N (object, left finger, right finger) triples.
 
     objects, lefts, rights: [N, 40, 40, 40] float32 TSDF arrays (or length-N sequences of
         [40, 40, 40]), negative inside, in the frames of config.py.
     backend: "mujoco" (this module: threads over candidates, the CPU default) or "mjx" (all
         candidates batched in MJX, ``sim.mjx_batch``; pays off on an accelerator).
-    threads: worker threads (default os.cpu_count()).
+    executor: where the "mujoco" backend's candidates run: "threads" (this process, ``threads``
+        worker threads) or "ray" (Ray tasks on a local or remote cluster, ``sim.ray_executor``:
+        needs the ``ray`` extra; same outcomes bit for bit).
+    threads: worker threads of executor "threads" (default os.cpu_count()).
+    ray_address: executor "ray": the cluster to join when no Ray session exists yet ("auto",
+        "host:port"; default: a cluster started on this machine, else a new local one).
+    task_size: executor "ray": candidates per Ray task (default: ~4 tasks per cluster CPU,
+        at most 8 candidates each).
     progress: tqdm bars; None shows the trials bar when N > 32 and, with coacd objects, the
         object-hulls bar when more than one distinct object needs hulls (~15 s each, uncached).
     object_hulls: precomputed object pieces (Hulls), one for all or a length-N sequence; default
@@ -132,6 +143,15 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     """
     if backend not in ("mujoco", "mjx"):
         raise ValueError(f"unknown backend {backend!r}; choose 'mujoco' or 'mjx'")
+    if executor not in EXECUTORS:
+        raise ValueError(f"unknown executor {executor!r}; choose one of {EXECUTORS}")
+    if executor == "ray" and backend != "mujoco":
+        raise ValueError("executor='ray' distributes the 'mujoco' backend; the 'mjx' backend "
+                         "batches every candidate on one accelerator")
+    if executor == "ray":
+        from f2f_jax.sim import ray_executor
+
+        ray_executor.require_ray()  # before any work: a missing extra is the first thing said
     cfg = cfg or Config()
     if preset is not None:
         cfg = with_sim_preset(cfg, preset)
@@ -158,6 +178,7 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
             except VolumeError as exc:
                 raise VolumeError(f"{name}[{i}]: {exc}") from None
 
+    hull_list = None  # None: made below by cfg.geometry.object_method
     if object_hulls is not None:
         hull_list = [object_hulls] * n if isinstance(object_hulls, Hulls) else list(object_hulls)
         if len(hull_list) != n:
@@ -167,38 +188,24 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         return _evaluate_mjx(objs, lefts, rights, feasible, cfg, object_hulls=object_hulls,
                              cache_dir=cache_dir, return_info=return_info, progress=progress)
     start = time.perf_counter()
-    threads = max(1, int(threads or os.cpu_count() or 1))
     todo = np.nonzero(feasible)[0]
     results: list[TrialResult | None] = [None] * n
+    show = progress if progress is not None else len(todo) > _AUTO_PROGRESS
+    if executor == "ray":
+        done = ray_executor.run(objs, lefts, rights, todo, cfg, hull_list=hull_list,
+                                offsets=offsets, cache_dir=cache_dir, progress=show,
+                                address=ray_address, task_size=task_size)
+        for i in todo:
+            results[i] = done[int(i)]
+    else:
+        _run_threads(objs, lefts, rights, todo, cfg, results, threads=threads, show=show,
+                     hull_list=hull_list, offsets=offsets,
+                     cache_dir=cache_dir, progress=progress)
     errors: dict[int, str] = {}
-
-    with ThreadPoolExecutor(max_workers=threads) as pool:
-        if object_hulls is None:
-            # each distinct object once, uncached ones by coacd in one process per core
-            hull_list = [None] * n
-            made = make_object_hulls_many([objs[i] for i in todo], cfg, cache_dir=cache_dir,
-                                          workers=threads, progress=progress)
-            for i, hulls in zip(todo, made):
-                hull_list[i] = hulls
-
-        def work(i):
-            hulls = hull_list[i]
-            if isinstance(hulls, str):
-                return TrialResult.zeros(n_trials, error=f"object hulls: {hulls}")
-            return _simulate(hulls, lefts[i], rights[i], cfg,
-                             None if offsets is None else offsets[i])
-
-        show = progress if progress is not None else len(todo) > _AUTO_PROGRESS
-        done = pool.map(work, todo)
-        if show:
-            from tqdm.auto import tqdm
-
-            done = tqdm(done, total=len(todo), desc="grasp trials", unit="cand")
-        for i, res in zip(todo, done):
-            results[i] = res
-            if res.error is not None:
-                errors[int(i)] = res.error
-                log.warning("candidate %d not simulated: %s", i, res.error)
+    for i in todo:
+        if results[i].error is not None:
+            errors[int(i)] = results[i].error
+            log.warning("candidate %d not simulated: %s", i, results[i].error)
 
     outcomes = np.zeros((n, n_trials), np.uint8)
     for i, res in enumerate(results):
@@ -217,6 +224,35 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         initial_contacts=field("initial_contacts"), seconds=time.perf_counter() - start,
         results=results)
     return outcomes, info
+
+
+def _run_threads(objs, lefts, rights, todo, cfg, results, *, threads, show, hull_list, offsets,
+                 cache_dir, progress) -> None:
+    """evaluate(executor="threads"): results[i] for i in todo, from a pool of worker threads."""
+    threads = max(1, int(threads or os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        if hull_list is None:
+            # each distinct object once, uncached ones by coacd in one process per core
+            hull_list = [None] * len(objs)
+            made = make_object_hulls_many([objs[i] for i in todo], cfg, cache_dir=cache_dir,
+                                          workers=threads, progress=progress)
+            for i, hulls in zip(todo, made):
+                hull_list[i] = hulls
+
+        def work(i):
+            hulls = hull_list[i]
+            if isinstance(hulls, str):
+                return TrialResult.zeros(cfg.sim.n_trials, error=f"object hulls: {hulls}")
+            return simulate_candidate(hulls, lefts[i], rights[i], cfg,
+                                      None if offsets is None else offsets[i])
+
+        done = pool.map(work, todo)
+        if show:
+            from tqdm.auto import tqdm
+
+            done = tqdm(done, total=len(todo), desc="grasp trials", unit="cand")
+        for i, res in zip(todo, done):
+            results[i] = res
 
 
 def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir, return_info,
