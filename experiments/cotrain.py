@@ -4,6 +4,7 @@
     python experiments/cotrain.py --config paper --objects ~/shapenet --run-dir runs/paper
     python experiments/cotrain.py --cycles 20 --objectives GS --from-pretrained runs/cotrain \
         --run-dir runs/cotrain-GS                                # an ablation on the same pretraining
+    python experiments/cotrain.py --cycles 20 --executor ray   # simulation on a Ray cluster
 
 Kill it at any moment and rerun the same command: it resumes from the last complete checkpoint
 (and the grasp store keeps every finished simulation).  The run directory holds the object set,
@@ -74,6 +75,9 @@ def main(argv=None) -> int:
                         "objects, every phase at full length)")
     p.add_argument("--seed", type=int, default=None)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    from f2f_jax.sim import ray_executor  # no JAX: the XLA flags below still take effect
+
+    ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
     _deterministic_xla()
 
@@ -124,10 +128,13 @@ def main(argv=None) -> int:
 
     from f2f_jax.train.cotrain import CoTrainRun
 
-    backend = args.backend or _default_backend()
+    if args.executor == "ray" and args.backend == "mjx":
+        return fail("--executor ray distributes the mujoco backend; drop --backend mjx")
+    backend = "mujoco" if args.executor == "ray" else args.backend or _default_backend()
     try:
+        executor = ray_executor.executor_from_cli(args)
         run = CoTrainRun(args.run_dir, cfg, config_name=args.config, objects=args.objects,
-                         backend=backend, progress=not args.quiet)
+                         backend=backend, progress=not args.quiet, executor=executor)
         if args.from_pretrained:
             src = str(Path(args.from_pretrained).resolve())
             meta = Path(args.run_dir) / "run.json"

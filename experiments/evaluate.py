@@ -6,6 +6,7 @@
         --extra ImpGN=runs/impgn --design-search 64 --objects 64 --tables 1,2
     python experiments/evaluate.py --run-dir runs/cotrain --extra "cycle 0=runs/cotrain/pretrained" \\
         --fresh 48 --seed 7 --neighbourhood 8 --tables 1 --no-randemb   # did co-training help?
+    python experiments/evaluate.py --run-dir runs/cotrain --executor ray   # trials on a Ray cluster
 
 With --run-dir the held-out objects of the run (DIR/objects, its fixed split) are evaluated and the
 run's newest checkpoint gives the rows "Fit2Form" (or "Fit2Form GS", ... after the run's objectives)
@@ -124,9 +125,13 @@ def main(argv=None) -> int:
     p.add_argument("--no-randemb", action="store_true", help="skip the RandEmb+FN row (slow on a CPU)")
     p.add_argument("--seed", type=int, default=0, help="built-in objects, RandEmb keys, position shifts")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    from f2f_jax.sim import ray_executor
+
+    ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
 
     from f2f_jax import config
+    from f2f_jax.errors import F2FError
 
     try:
         tables = sorted({int(t) for t in args.tables.split(",") if t.strip()})
@@ -156,6 +161,12 @@ def main(argv=None) -> int:
         if not Path(path).expanduser().is_dir():
             return _fail(f"--extra {item!r}: no such directory {path}")
         extras.append((name.strip(), Path(path).expanduser()))
+    if args.executor == "ray" and args.backend != "mujoco":
+        return _fail("--executor ray distributes the mujoco backend; drop --backend mjx")
+    try:
+        ray_executor.executor_from_cli(args)
+    except F2FError as exc:  # the extra missing, or no cluster at --ray-address
+        return _fail(str(exc))
 
     start = time.perf_counter()
     from f2f_jax import evaluate as E
@@ -195,7 +206,8 @@ def main(argv=None) -> int:
         objects, names = objects[: args.objects], names[: args.objects]
     if len(objects) == 0:
         return _fail(f"no objects to evaluate ({what})")
-    _say(f"{len(objects)} {what}; simulator: {args.backend}; output: {out_dir}")
+    where = " on ray" if args.executor == "ray" else ""
+    _say(f"{len(objects)} {what}; simulator: {args.backend}{where}; output: {out_dir}")
 
     # -- designers -----------------------------------------------------------------------------
     designers = {"WSG50": E.wsg50_designer(cfg), "Imprint": E.imprint_designer(cfg)}
@@ -227,7 +239,7 @@ def main(argv=None) -> int:
                     name = f"Fit2Form + search ({k}, verify)"
                     designers[name] = E.pair_designer(
                         lambda objs, k=k: design(objs, params=models, candidates=k, verify=True,
-                                                 backend=args.backend,
+                                                 backend=args.backend, executor=args.executor,
                                                  progress=False if args.quiet else None),
                         batched=True, desc=name)
                     table2_rows.append(name)
@@ -267,7 +279,8 @@ def main(argv=None) -> int:
                "design_seconds": {k: round(d.seconds, 2) for k, d in designs.items()}}
     printed = []
     if 1 in tables:
-        t1 = E.table1(designs, objs, cfg, backend=args.backend, progress=progress, object_hulls=hulls)
+        t1 = E.table1(designs, objs, cfg, backend=args.backend, progress=progress, object_hulls=hulls,
+                      executor=args.executor)
         t1.notes[:0] = notes
         results["table1"] = {"values": t1.values, "feasible": t1.feasible,
                              "sim_seconds": round(t1.sim_seconds, 2),
@@ -277,7 +290,8 @@ def main(argv=None) -> int:
         printed.append(t1.to_markdown())
     if 2 in tables:
         t2 = E.table2({k: designs[k] for k in table2_rows}, objs, cfg, backend=args.backend,
-                      progress=progress, object_hulls=hulls, seed=args.seed)
+                      progress=progress, object_hulls=hulls, seed=args.seed,
+                      executor=args.executor)
         t2.notes[:0] = notes
         results["table2"] = {"values": t2.values, "feasible": t2.feasible,
                              "sim_seconds": round(t2.sim_seconds, 2),
@@ -289,7 +303,8 @@ def main(argv=None) -> int:
     if ranked is not None:
         _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
         rk = E.fitness_ranking(ranked, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
-                               backend=args.backend, object_hulls=hulls, progress=progress)
+                               backend=args.backend, object_hulls=hulls, progress=progress,
+                               executor=args.executor)
         results["fitness_ranking"] = rk
         printed.append(
             f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "
@@ -305,7 +320,7 @@ def main(argv=None) -> int:
             _say(f"neighbourhood of {name}: {k} candidates per object, all simulated")
             sims[name] = E.candidate_outcomes(m, objs, cfg, candidates=k, key=args.seed,
                                               backend=args.backend, object_hulls=hulls,
-                                              progress=progress)[3]
+                                              progress=progress, executor=args.executor)[3]
         stats = {name: E.neighbourhood_stats(v) for name, v in sims.items()}
         first, *others = sims
         gains = {name: E.paired_gain(sims[first], sims[name], seed=args.seed) for name in others}

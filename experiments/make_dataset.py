@@ -16,6 +16,7 @@ from f2f_jax import config
 from f2f_jax.data.dataset import build_grasp_dataset
 from f2f_jax.data import load_or_make_objects
 from f2f_jax.data.store import GraspStore
+from f2f_jax.errors import F2FError
 from f2f_jax.sim import ray_executor
 
 
@@ -42,10 +43,10 @@ def main(argv=None) -> int:
         p.error("--batch must be positive")
     if args.executor == "ray" and args.backend != "mujoco":
         p.error("--executor ray runs the mujoco backend")
-    executor = ray_executor.executor_from_cli(args)
-    batch = args.batch or 8
-    if args.batch is None and executor == "ray":
-        batch = max(8, 2 * ray_executor.cluster_cpus(ray_executor.require_ray()))
+    try:
+        executor = ray_executor.executor_from_cli(args)
+    except F2FError as exc:  # the extra missing, or no cluster at --ray-address
+        p.error(str(exc))
     cfg = config.get(args.config)
     if args.sim_preset is not None:
         cfg = config.with_sim_preset(cfg, args.sim_preset)
@@ -53,7 +54,7 @@ def main(argv=None) -> int:
     tsdfs, names = load_or_make_objects(args.objects, args.n, args.seed, out / "objects", cfg.geometry)
     store = GraspStore(out / "store")
     store.clean_temporary()
-    summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=batch,
+    summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=args.batch,
                                   n_cut=args.cut_pairs, backend=args.backend, executor=executor)
     print(json.dumps({"rows": len(store), "this_run": summary}, indent=1))
     return 0

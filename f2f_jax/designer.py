@@ -149,7 +149,7 @@ class FingerPair:
 
 def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int = 1,
            verify: bool = False, backend: str = "mujoco", run_dir=None,
-           noise: float = LATENT_NOISE, progress: bool | None = None):
+           noise: float = LATENT_NOISE, progress: bool | None = None, executor: str = "threads"):
     """Design a finger pair for each object.
 
     obj_tsdf: [40, 40, 40] float32 object TSDF (negative inside) -> FingerPair, or a batch
@@ -159,7 +159,7 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
     key: jax PRNG key (or an int seed) for the latent noise of candidates 1..K-1; default key(0).
     candidates: K >= 1 designs sampled per object (see the module docstring for the ranking).
     verify: simulate the feasible candidates (one ``sim.evaluate`` call with ``backend``) and rank
-        by simulated outcome first.
+        by simulated outcome first; executor: that call's (``sim.evaluate``: "threads" or "ray").
     noise: standard deviation of the latent noise (latent units; the latents span [-1, 1]).
     progress: the simulation's progress bar with ``verify`` (None: ``sim.evaluate``'s default).
 
@@ -189,8 +189,8 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
     if not np.all(np.isfinite(predicted)):
         raise F2FError(f"the fitness net of {models.source or 'these models'} predicted NaN/inf; "
                        "the checkpoint is broken")
-    simulated = (_simulate(models, objects, lefts, rights, feasible, backend, progress)
-                 if verify else None)
+    simulated = (_simulate(models, objects, lefts, rights, feasible, backend, progress,
+                           executor=executor) if verify else None)
     best = rank_candidates(feasible, predicted, simulated)[:, 0]
 
     hopeless = np.nonzero(~feasible.any(axis=1))[0]
@@ -305,7 +305,7 @@ def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
 
 
 def _simulate(models, objects, lefts, rights, feasible, backend, progress=None,
-              object_hulls=None) -> np.ndarray:
+              object_hulls=None, executor: str = "threads") -> np.ndarray:
     """Simulated outcomes [B, K, 11] uint8: the feasible candidates in one evaluate call, zeros
     for the rest (an infeasible finger scores all 0 by the protocol).  object_hulls: optional
     precomputed hulls, one per object."""
@@ -317,7 +317,8 @@ def _simulate(models, objects, lefts, rights, feasible, backend, progress=None,
     if len(ib):
         hulls = None if object_hulls is None else [object_hulls[i] for i in ib]
         out[ib, ik] = evaluate(objects[ib], lefts[ib, ik], rights[ib, ik], backend=backend,
-                               cfg=models.config, progress=progress, object_hulls=hulls)
+                               cfg=models.config, progress=progress, object_hulls=hulls,
+                               executor=executor)
     return out
 
 

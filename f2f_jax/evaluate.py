@@ -553,7 +553,7 @@ def prepare_objects(objects, cfg: Config, *, object_hulls=None, cache_dir=None,
 
 
 def _simulate_designs(designs: dict[str, Design], objs, hulls, cfg, backend, progress,
-                      object_xy=None):
+                      object_xy=None, executor: str = "threads"):
     """One sim.evaluate call over every designer's pairs (threads stay busy).
     Returns ({designer: [N, 11] uint8}, {designer: feasible fraction}, seconds, failed count)."""
     from f2f_jax.sim import evaluate
@@ -566,7 +566,7 @@ def _simulate_designs(designs: dict[str, Design], objs, hulls, cfg, backend, pro
         np.concatenate([designs[k].lefts for k in names]),
         np.concatenate([designs[k].rights for k in names]),
         backend=backend, cfg=cfg, progress=progress, object_hulls=hulls * len(names),
-        return_info=True,
+        return_info=True, executor=executor,
         **({} if object_xy is None else {"object_xy": np.concatenate([object_xy] * len(names))}))
     seconds = time.perf_counter() - start
     outcomes = {k: out[j * n:(j + 1) * n] for j, k in enumerate(names)}
@@ -582,7 +582,7 @@ def _counting_note() -> str:
 
 def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | None = None, *,
            backend: str = "mujoco", progress: bool = True, object_hulls=None,
-           cache_dir=None) -> Table:
+           cache_dir=None, executor: str = "threads") -> Table:
     """The paper's Table 1 for our designers on ``objects`` [N, 40, 40, 40].
 
     designers: {row name: designer or precomputed Design}; rows named as in the paper
@@ -591,7 +591,7 @@ def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     Columns (percent): grasp, S1..S4, S avg (mean of S1..S4), R-30..R+30, R avg (mean of the six).
     Rates are absolute over all objects, not conditional on a successful grasp (see the module
     docstring); infeasible designs score 0 and ``Table.feasible`` gives each row's feasible share.
-    object_hulls / cache_dir: as in ``sim.evaluate``; backend: "mujoco" or "mjx".
+    object_hulls / cache_dir / executor: as in ``sim.evaluate``; backend: "mujoco" or "mjx".
     """
     from f2f_jax.config import default
 
@@ -600,7 +600,7 @@ def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
                                          cache_dir=cache_dir, progress=progress)
     designs = make_designs(designers, objs, progress=progress)
     outcomes, feasible, seconds, failed = _simulate_designs(designs, objs, hulls, cfg, backend,
-                                                            progress)
+                                                            progress, executor=executor)
     if failed:
         notes.append(f"{failed} candidate(s) could not be simulated (model build errors): scored 0")
     notes.append(_counting_note())
@@ -630,7 +630,8 @@ def position_offsets(n: int, condition: Condition, seed: int = 0) -> np.ndarray 
 
 def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | None = None, *,
            conditions: Sequence[Condition] = TABLE2_CONDITIONS, backend: str = "mujoco",
-           progress: bool = True, object_hulls=None, cache_dir=None, seed: int = 0) -> Table:
+           progress: bool = True, object_hulls=None, cache_dir=None, seed: int = 0,
+           executor: str = "threads") -> Table:
     """The paper's Table 2 (appendix): grasp success (percent) of each designer under perturbed
     system parameters: the original setting, object mass 100 g and 150 g, finger-object friction
     0.1 and 0.05, and the object shifted by x in +-[0.1, 0.5] cm with y in +-[0.1, 1] cm or
@@ -639,7 +640,7 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     The fingers are designed once for the nominal objects (the designer does not see the
     perturbation).  Shifts exist on the "mujoco" backend only: with backend="mjx" those
     conditions run on "mujoco" (said in the notes).  ``Table.outcomes[name]`` is [C, N, 11];
-    ``feasible`` as in ``table1``.
+    ``feasible`` as in ``table1``; executor: as in ``sim.evaluate``.
     """
     from f2f_jax.config import default
 
@@ -660,7 +661,7 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
                          "the grasp location)")
         out, feasible, sec, failed = _simulate_designs(
             designs, objs, hulls, cond.config(cfg), cond_backend, progress,
-            object_xy=position_offsets(len(objs), cond, seed))
+            object_xy=position_offsets(len(objs), cond, seed), executor=executor)
         per_condition[cond.name] = out
         seconds += sec
         if failed:
@@ -734,12 +735,14 @@ def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, flo
 
 def candidate_outcomes(models, objects, cfg: Config | None = None, *, candidates: int = 8,
                        noise: float | None = None, key=0, backend: str = "mujoco",
-                       object_hulls=None, progress: bool | None = None):
+                       object_hulls=None, progress: bool | None = None,
+                       executor: str = "threads"):
     """``f2f_jax.design``'s candidates for every object, all simulated.
 
     Per object the generator's own output and ``candidates - 1`` latent perturbations (``noise``,
     default ``designer.LATENT_NOISE``), post-processed; infeasible ones score 0 by the protocol.
-    objects: [N, 40, 40, 40]; object_hulls: optional, one per object.
+    objects: [N, 40, 40, 40]; object_hulls: optional, one per object; executor: as in
+    ``sim.evaluate``.
     Returns (lefts, rights [N, K, 40, 40, 40], feasible [N, K], simulated [N, K, 11] uint8).
     """
     from f2f_jax.designer import LATENT_NOISE, _simulate, postprocess, propose
@@ -751,13 +754,14 @@ def candidate_outcomes(models, objects, cfg: Config | None = None, *, candidates
     lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
     feasible = postprocess(lefts, rights, cfg.geometry)
     simulated = _simulate(dataclasses.replace(models, config=cfg), objs, lefts, rights, feasible,
-                          backend, progress, object_hulls)
+                          backend, progress, object_hulls, executor=executor)
     return lefts, rights, feasible, simulated
 
 
 def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: int = 16,
                     noise: float | None = None, key=0, backend: str = "mujoco",
-                    object_hulls=None, progress: bool | None = None) -> dict[str, float]:
+                    object_hulls=None, progress: bool | None = None,
+                    executor: str = "threads") -> dict[str, float]:
     """``ranking_stats`` of a trained run's fitness net on ``candidates`` designs per object.
 
     The candidates are ``candidate_outcomes``' (the generator's own output and K - 1 latent
@@ -773,7 +777,7 @@ def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: i
     objs = _objects_array(objects, cfg.geometry.resolution)
     lefts, rights, feasible, simulated = candidate_outcomes(
         models, objs, cfg, candidates=candidates, noise=noise, key=key, backend=backend,
-        object_hulls=object_hulls, progress=progress)
+        object_hulls=object_hulls, progress=progress, executor=executor)
     predicted = predict(models, objs, lefts, rights)
     n, k = feasible.shape
     out = ranking_stats(predicted, simulated)

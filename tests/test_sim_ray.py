@@ -183,3 +183,37 @@ def test_killed_make_dataset_driver_loses_and_duplicates_nothing(ray_cluster, tm
     assert GraspStore(store_dir).done_keys() == want
     assert sorted(zip(names.tolist(), data["kind"].tolist())) == sorted(
         (n, k) for n in want for k in ("imprint", "wsg50"))
+
+
+def test_paper_table_on_ray_is_the_threaded_one(ray_cluster, triples, threaded, tiny_cfg):
+    from f2f_jax import evaluate as E
+
+    objs = triples[0][0:8:2]
+    hulls = [object_pieces(o, tiny_cfg, cache_dir=False) for o in objs]
+    designers = {"Imprint": E.imprint_designer(tiny_cfg), "WSG50": E.wsg50_designer(tiny_cfg)}
+    t1 = E.table1(designers, objs, tiny_cfg, object_hulls=hulls, progress=False, executor="ray")
+    np.testing.assert_array_equal(t1.outcomes["Imprint"], threaded[0][0:8:2])
+    np.testing.assert_array_equal(t1.outcomes["WSG50"], threaded[0][1:8:2])
+
+
+def test_command_lines_refuse_ray_misuse_before_any_work(tmp_path, capsys, monkeypatch):
+    sys.path.insert(0, str(ROOT / "experiments"))
+    try:
+        import cotrain
+        from experiments import evaluate
+        import make_dataset
+    finally:
+        sys.path.pop(0)
+    run = ["--run-dir", str(tmp_path / "run")]
+    assert cotrain.main([*run, "--executor", "ray", "--backend", "mjx"]) == 2
+    assert evaluate.main(["--executor", "ray", "--backend", "mjx"]) == 2
+    with pytest.raises(SystemExit):
+        make_dataset.main(["--out", str(tmp_path / "ds"), "--executor", "ray", "--backend", "mjx"])
+    monkeypatch.setitem(sys.modules, "ray", None)
+    assert cotrain.main([*run, "--executor", "ray"]) == 2
+    assert evaluate.main(["--executor", "ray"]) == 2
+    with pytest.raises(SystemExit):
+        make_dataset.main(["--out", str(tmp_path / "ds"), "--executor", "ray"])
+    err = capsys.readouterr().err
+    assert err.count('pip install -e ".[ray]"') == 3 and "mujoco backend" in err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "ds").exists()

@@ -37,12 +37,14 @@ def pretraining_pairs(object_tsdfs: np.ndarray, index: int, rng: np.random.Gener
 
 
 def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config | None = None,
-                        seed: int = 0, batch_objects: int = 8, n_cut: int = 2, backend: str = "mujoco",
+                        seed: int = 0, batch_objects: int | None = None, n_cut: int = 2,
+                        backend: str = "mujoco",
                         progress: bool = True, executor: str = "threads") -> dict:
     """Simulate the pretraining pairs of every object into ``store``; resumable.
 
     object_tsdfs: [N, R, R, R]; names: N object names.  Work goes in batches of ``batch_objects``
-    objects, each batch one atomic chunk keyed by its object names, so a killed run loses at most
+    objects (default 8; with executor "ray", 2 per cluster CPU and at least 8, so that every CPU
+    of a cluster has work in each batch), each batch one atomic chunk keyed by its object names, so a killed run loses at most
     the batch in flight and a rerun skips finished objects.  The finger pairs of object i depend
     only on (seed, i), never on what was already done.  executor: ``sim.evaluate``'s ("threads",
     or "ray": each batch's simulation in Ray tasks; the store is still written here, by the
@@ -52,6 +54,14 @@ def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config |
     from f2f_jax import sim  # the data layer only needs the simulator here
 
     cfg = cfg or default()
+    if batch_objects is None:
+        batch_objects = 8
+        if executor == "ray":
+            from f2f_jax.sim import ray_executor
+
+            batch_objects = max(8, 2 * ray_executor.cluster_cpus(ray_executor.connect()))
+    if batch_objects < 1:
+        raise ValueError(f"batch_objects must be >= 1, got {batch_objects}")
     object_tsdfs = np.asarray(object_tsdfs, np.float32)
     names = [str(n) for n in names]
     done = store.done_keys()

@@ -98,16 +98,19 @@ class CoTrainRun:
 
     cfg: the run's Config; config_name: its name, recorded (a run directory refuses a different
     config); objects: "builtin", "pybullet" or a mesh directory; backend: the simulator
-    ("mujoco" or "mjx"); progress: tqdm bars.
+    ("mujoco" or "mjx"); executor: where it runs ("threads", or "ray": the pretraining dataset's
+    and every cycle's simulation in Ray tasks, ``sim.evaluate``); not part of the run: a run may
+    be resumed with either; progress: tqdm bars.
     """
 
     def __init__(self, run_dir, cfg: Config, *, config_name: str = "custom", objects: str = "builtin",
-                 backend: str = "mujoco", progress: bool = True):
+                 backend: str = "mujoco", progress: bool = True, executor: str = "threads"):
         self.dir = Path(run_dir)
         self.cfg = cfg
         self.config_name = config_name
         self.source = objects
         self.backend = backend
+        self.executor = executor
         self.progress = progress
         self.seed = cfg.train.seed
         self._check_run_json()
@@ -249,7 +252,7 @@ class CoTrainRun:
         start = time.perf_counter()
         build_grasp_dataset(tsdfs[self.train_idx], [names[i] for i in self.train_idx], self.store,
                             cfg=self.cfg, seed=self.seed, n_cut=t.cut_pairs, backend=self.backend,
-                            progress=self.progress)
+                            progress=self.progress, executor=self.executor)
         self._baselines()
         self._log({"stage": "data", "objects": len(names), "train": len(self.train_idx),
                    "test": len(self.test_idx), "store_rows": len(self.store),
@@ -294,9 +297,10 @@ class CoTrainRun:
         from f2f_jax import sim
 
         if self.progress:
-            print(f"simulating {len(objs)} {what} ({self.backend})", flush=True)
+            where = "" if self.executor == "threads" else f", {self.executor}"
+            print(f"simulating {len(objs)} {what} ({self.backend}{where})", flush=True)
         return sim.evaluate(objs, lefts, rights, backend=self.backend, cfg=self.cfg,
-                            progress=None if self.progress else False)
+                            progress=None if self.progress else False, executor=self.executor)
 
     # -- state ----------------------------------------------------------------------------------
     def _fresh_state(self) -> dict:
