@@ -3,6 +3,7 @@
     python benchmarks/sim_throughput.py                       # 32 builtin imprint triples
     python benchmarks/sim_throughput.py --n 16 --per-core-n 8 --json out.json
     python benchmarks/sim_throughput.py --objects DIR --n 16  # a mesh directory, e.g. random_urdfs
+    python benchmarks/sim_throughput.py --n 64 --per-core-n 0 --executor ray   # + Ray's overhead
 
 Every simulator gets the same triples: imprint finger pairs of builtin objects (or of the first
 meshes of ``--objects DIR``).  Object pieces are made beforehand (coacd, cached on disk) and not
@@ -16,6 +17,12 @@ MuJoCo on all ``--threads`` cores over ``--n`` triples, and each on one thread o
 one core, on the reference's hulls; needs the ``pybullet`` extra, else skipped) on the same
 subset.  Printed: evaluations/s, per core, physics steps/s, steps per evaluation and grasp
 success per row, and the per-core ratios fast / reference and fast / PyBullet.
+
+``--executor ray [--ray-address ADDR]`` adds the default preset on Ray (``sim.evaluate(...,
+executor="ray")``, a local cluster over this machine's cores unless an address is given) on the
+same triples and pieces: its evaluations/s, ``ray_overhead`` = threads' evaluations/s / Ray's
+(1.0: none; compare on the same cores), whether the outcomes are identical, and the seconds to
+start Ray and its workers (timed apart: a long job pays them once).
 """
 
 from __future__ import annotations
@@ -38,6 +45,7 @@ from f2f_jax import config, sim  # noqa: E402
 from f2f_jax.geometry import imprint_fingers  # noqa: E402
 from f2f_jax.geometry.hulls import finger_hulls  # noqa: E402
 from f2f_jax.geometry.pieces import object_pieces, object_pieces_many  # noqa: E402
+from f2f_jax.sim import ray_executor  # noqa: E402
 from sim_agreement import load_objects  # noqa: E402
 
 
@@ -71,6 +79,8 @@ def main(argv=None) -> int:
     p.add_argument("--meshing-n", type=int, default=2,
                    help="objects whose pieces are timed uncached (coacd: 13-30 s each; default 2)")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--task-size", type=int, default=None, help="--executor ray: candidates per task")
+    ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
     if args.n < 1 or args.per_core_n < 0 or args.threads < 1 or args.meshing_n < 1:
         p.error("--n, --threads and --meshing-n must be >= 1, --per-core-n >= 0")
@@ -111,6 +121,26 @@ def main(argv=None) -> int:
 
     for name in presets:
         run(name, name, len(objs), args.threads)
+    ray_info = {}
+    if args.executor == "ray":
+        start = time.perf_counter()
+        ray = ray_executor.connect(args.ray_address)
+        cpus = ray_executor.cluster_cpus(ray)
+        # start every worker (process, imports) on a first small batch, timed apart
+        warm = min(len(objs), cpus)
+        sim.evaluate(objs[:warm], lefts[:warm], rights[:warm], cfg=presets["fast"], executor="ray",
+                     object_hulls=pieces["fast"][:warm], task_size=1, progress=False)
+        ray_info["start_s"] = time.perf_counter() - start
+        start = time.perf_counter()
+        out, info = sim.evaluate(objs, lefts, rights, cfg=presets["fast"], executor="ray",
+                                 object_hulls=pieces["fast"], task_size=args.task_size,
+                                 return_info=True, progress=False)
+        rows["fast ray"] = dict(evals=len(objs), seconds=time.perf_counter() - start,
+                                steps=info.total_steps, workers=cpus,
+                                grasp_rate=float(out[:, 0].mean()))
+        threaded = sim.evaluate(objs, lefts, rights, cfg=presets["fast"], threads=args.threads,
+                                object_hulls=pieces["fast"], progress=False)
+        ray_info.update(cpus=cpus, identical=bool(np.array_equal(out, threaded)))
     if k > 0:
         for name in presets:
             run(f"{name} 1 thread", name, k, 1)
@@ -150,6 +180,15 @@ def main(argv=None) -> int:
               "object_meshing_s": {"mean": float(meshing.mean()), "max": float(meshing.max()),
                                    "n": len(meshing), "method": presets["fast"].geometry.object_method},
               "tiles_meshing_s": {"mean": float(tiles.mean()), "max": float(tiles.max())}}
+    if ray_info:
+        result["ray_evals_per_s"] = rate("fast ray")
+        result["ray_overhead"] = rate("fast") / rate("fast ray")
+        result.update(ray_cpus=ray_info["cpus"], ray_identical=ray_info["identical"],
+                      ray_start_s=ray_info["start_s"], threads=args.threads)
+        print(f"\nray ({ray_info['cpus']} CPUs) against {args.threads} threads, same {len(objs)} "
+              f"triples: overhead {result['ray_overhead']:.3f} (threads / ray evals/s; target "
+              f"<= 1.15); outcomes identical: {'yes' if ray_info['identical'] else 'NO'}; ray and "
+              f"its workers started in {ray_info['start_s']:.1f} s (not counted)")
     if k > 0:
         result["ratio_fast_vs_reference"] = rate("fast 1 thread") / rate("reference 1 thread")
         print(f"\nper core, same {k} triples: fast / reference = {result['ratio_fast_vs_reference']:.2f}x "

@@ -73,8 +73,12 @@ def connect(address: str | None = None):
     try:
         ray.init(address=address, logging_level=logging.WARNING, log_to_driver=True)
     except ConnectionError as exc:
-        raise F2FError(f"no Ray cluster at {address!r} ({exc}); start one with `ray start --head` "
-                       "on the head node, or leave the address out to run on this machine") from exc
+        raise F2FError(
+            f"no Ray cluster answers at {address!r} ({exc}). Start one with `ray start --head` on "
+            "the head node, or leave the address out to run on this machine. A cluster started "
+            "with token authentication (the default of `ray start` since Ray 2.59) also needs "
+            "RAY_AUTH_MODE=token here and the head's token (its ~/.ray/auth_token, or "
+            "RAY_AUTH_TOKEN)") from exc
     return ray
 
 
@@ -254,7 +258,9 @@ def executor_from_cli(args) -> str:
     or a wrong address is said before any work, and prints what it joined."""
     if args.executor == "ray":
         ray = connect(args.ray_address)
-        print(f"ray: {cluster_cpus(ray)} CPUs on {len(ray.nodes())} node(s)", flush=True)
+        nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
+        print(f"ray: {cluster_cpus(ray)} CPUs on {nodes} node(s), cluster "
+              f"{ray.get_runtime_context().gcs_address}", flush=True)
     elif args.ray_address is not None:
         raise SystemExit("--ray-address needs --executor ray")
     return args.executor
