@@ -1,6 +1,6 @@
 """The paper's Table 1 and Table 2 for a co-training run (or the baselines alone).
 
-    python experiments/evaluate.py                          # WSG50 + Imprint, 12 built-in objects
+    python experiments/evaluate.py                          # WSG50, flat pads, Imprint; 12 built-in objects
     python experiments/evaluate.py --run-dir runs/cotrain   # + RandEmb+FN, Fit2Form; held-out objects
     python experiments/evaluate.py --run-dir runs/cotrain --extra "Fit2Form GS=runs/gs" \\
         --extra ImpGN=runs/impgn --design-search 64 --objects 64 --tables 1,2
@@ -11,8 +11,11 @@
 With --run-dir the held-out objects of the run (DIR/objects, its fixed split) are evaluated and the
 run's newest checkpoint gives the rows "Fit2Form" (or "Fit2Form GS", ... after the run's objectives)
 and "RandEmb+FN" (its shape decoder and fitness net without the generator).  Without a checkpoint
-only WSG50 and Imprint are run.  Each --extra NAME=RUN_DIR adds a Table 1 row from another run's
-checkpoint (ablations).  Table 2 has the paper's rows: WSG50, Imprint and the run's own row.
+only the baselines are run: "WSG50" (Schunk's standard WSG-FMF fingers, the paper's baseline; the
+mesh comes with the pybullet extra, and the row is skipped with a note without it), "Flat pads"
+(ideal flat fingertips, ours) and "Imprint".  Each --extra NAME=RUN_DIR adds a Table 1 row from
+another run's checkpoint (ablations).  Table 2 has the paper's rows: WSG50, Imprint and the run's
+own row.
 --neighbourhood K compares the generators (the run's and the extras'): K candidates per object
 each, all simulated, and the run's gain over each extra paired over objects with a bootstrap
 interval; --fresh N adds N never-seen built-in objects to the run's held-out ones.
@@ -210,12 +213,23 @@ def main(argv=None) -> int:
     _say(f"{len(objects)} {what}; simulator: {args.backend}{where}; output: {out_dir}")
 
     # -- designers -----------------------------------------------------------------------------
-    designers = {"WSG50": E.wsg50_designer(cfg), "Imprint": E.imprint_designer(cfg)}
-    table2_rows = ["WSG50", "Imprint"]
+    designers, table2_rows, skipped = {}, [], []  # skipped: notes on the rows
+    try:
+        designers["WSG50"] = E.wsg_fmf_designer(cfg)
+        table2_rows.append("WSG50")
+        skipped.append("WSG50: Schunk's standard WSG-FMF fingers (the mesh pybullet_data ships; "
+                       "faces meet at the object's mid-plane at full closure, as every finger "
+                       "here); Flat pads: ideal flat fingertips (ours, not in the paper)")
+    except ImportError as exc:  # MissingExtraError: the mesh ships with pybullet
+        _say(f"WSG50 row (WSG-FMF fingers) skipped: {exc}")
+        skipped.append(f"WSG50 (WSG-FMF fingers) not run: {exc}")
+    designers["Flat pads"] = E.wsg50_designer(cfg)
+    designers["Imprint"] = E.imprint_designer(cfg)
+    table2_rows.append("Imprint")
     if run_dir is not None:
         models, why = _load_models(run_dir)
         if models is None:
-            _say(f"no usable checkpoint in {run_dir} ({why}): running the WSG50 and Imprint rows only")
+            _say(f"no usable checkpoint in {run_dir} ({why}): running the baseline rows only")
             if args.design_search:
                 _say("--design-search needs a checkpoint: skipping that row")
         else:
@@ -281,7 +295,7 @@ def main(argv=None) -> int:
     if 1 in tables:
         t1 = E.table1(designs, objs, cfg, backend=args.backend, progress=progress, object_hulls=hulls,
                       executor=args.executor)
-        t1.notes[:0] = notes
+        t1.notes[:0] = notes + skipped
         results["table1"] = {"values": t1.values, "feasible": t1.feasible,
                              "sim_seconds": round(t1.sim_seconds, 2),
                              "outcomes": {k: ["".join(map(str, o)) for o in v]
@@ -292,7 +306,7 @@ def main(argv=None) -> int:
         t2 = E.table2({k: designs[k] for k in table2_rows}, objs, cfg, backend=args.backend,
                       progress=progress, object_hulls=hulls, seed=args.seed,
                       executor=args.executor)
-        t2.notes[:0] = notes
+        t2.notes[:0] = notes + skipped
         results["table2"] = {"values": t2.values, "feasible": t2.feasible,
                              "sim_seconds": round(t2.sim_seconds, 2),
                              "grasp": {k: {c: "".join(map(str, v[j, :, 0]))

@@ -2,7 +2,8 @@
 
 A **designer** is a callable ``objects [N, 40, 40, 40] float32 -> (lefts, rights)``, two numpy
 arrays ``[N, 40, 40, 40]`` float32 of finger TSDFs in the finger frame of ``f2f_jax.config``.
-This module provides the paper's rows as designers (``wsg50_designer``, ``imprint_designer``,
+This module provides the paper's rows as designers (``wsg_fmf_designer``, the paper's WSG50
+fingers; ``wsg50_designer``, flat pads; ``imprint_designer``,
 ``models_designer`` for a trained generator, ``random_embedding_designer`` for RandEmb+FN) and
 ``pair_designer`` to turn any per-object function (such as ``f2f_jax.design``) into one.
 
@@ -147,6 +148,20 @@ def _empty_finger(r: int = 40) -> np.ndarray:
 def wsg50_designer(cfg: Config | None = None) -> Designer:
     """The WSG50's flat fingertips (``geometry.wsg50_fingers``) for every object."""
     left, right = wsg50_fingers(cfg)
+
+    def design(objects):
+        n = len(_objects_array(objects))
+        return np.repeat(left[None], n, 0), np.repeat(right[None], n, 0)
+
+    return design
+
+
+def wsg_fmf_designer(cfg: Config | None = None) -> Designer:
+    """The paper's WSG50 row: Schunk's standard WSG-FMF fingers (``data.sources.wsg_fmf_fingers``,
+    the mesh of the pybullet extra) for every object.  Raises MissingExtraError without it."""
+    from f2f_jax.data.sources import wsg_fmf_fingers
+
+    left, right = wsg_fmf_fingers(cfg)
 
     def design(objects):
         n = len(_objects_array(objects))

@@ -137,6 +137,16 @@ def test_mass_and_friction_conditions_reach_the_simulator(objects, hulls, tiny):
     assert grasp == {"nominal": 0, "grippy": 1, "grippy heavy": 0}
 
 
+def test_wsg_fmf_fingers_hold_the_capsule_the_flat_pads_drop(objects, hulls, tiny, t1):
+    """The paper's WSG50 baseline (Schunk's WSG-FMF fingers): their stepped, grooved face lifts
+    the capsule at mu 0.2 and keeps it through the six turned grasps, where flat pads slip."""
+    pytest.importorskip("pybullet_data")
+    left, right = E.wsg_fmf_designer(tiny)(objects[2:3])
+    out = simulate(objects[2:3], left, right, cfg=tiny, object_hulls=hulls[2])[0]
+    assert out[0] == 1 and out[5:].all()
+    assert not t1.outcomes["WSG50"][2].any()  # the flat pads of the same table
+
+
 def test_table2_has_the_papers_conditions(objects, hulls, tiny, t1):
     assert E.TABLE2_COLUMNS == ("Original", "m 100g", "m 150g", "mu 0.1", "mu 0.05",
                                 "x ±0.5, y ±1 cm", "x ±0.5, y ±2 cm")

@@ -133,3 +133,44 @@ def test_imprint_finger_does_not_reach_under_a_resting_box():
         assert is_feasible(finger)
         # below the box's lowest row, nothing beyond the base block (w < 3 cm)
         assert not (finger[:, :bottom, 20:] < 0).any()
+
+
+def test_a_flat_finger_mesh_becomes_the_flat_pads():
+    from f2f_jax.geometry.fingers import finger_from_mesh
+
+    g = GeometryConfig()
+    # a 2 cm wide, 1 cm thick bar, face at x = 0, tip at z = 8 cm: the flat pads' shape
+    bar = trimesh.creation.box((0.01, 0.02, 0.08))
+    bar.apply_translation([-0.005, 0.0, 0.04])
+    finger = finger_from_mesh(bar, g)
+    pads, _ = wsg50_fingers(g)
+    solid, want = finger < 0, pads < 0
+    assert feasibility_report(finger, g)["feasible"]
+    assert (solid != want).mean() < 0.01  # the same voxels but at the rims
+    assert not solid[:, 0].any() and solid[:, 1].any()  # the tip a voxel above the floor
+    with pytest.raises(ValueError, match="no column"):
+        finger_from_mesh(bar.copy().apply_translation([0, 0.1, 0]), g)  # beside the volume
+
+
+def test_wsg_fmf_finger_from_the_pybullet_mesh(monkeypatch):
+    pytest.importorskip("pybullet_data")
+    import importlib.util
+
+    from f2f_jax.data import sources
+    from f2f_jax.errors import MissingExtraError
+
+    g = GeometryConfig()
+    left, right = sources.wsg_fmf_fingers(g)
+    report = feasibility_report(left, g)
+    assert report["feasible"] and np.array_equal(left, right)
+    solid = left < 0
+    # 30 mm wide, face reaching 3 cm from the mount, not a flat pad: its face steps and grooves
+    u = np.nonzero(solid.any(axis=(1, 2)))[0]
+    assert abs((u[-1] - u[0] + 1) * g.voxel_size - 0.03) <= 2 * g.voxel_size
+    depth = solid.sum(axis=2)[solid.any(axis=2)] * g.voxel_size
+    assert depth.max() == pytest.approx(0.03, abs=g.voxel_size) and depth.min() < 0.025
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec",
+                        lambda name, *a: None if name == "pybullet_data" else real(name, *a))
+    with pytest.raises(MissingExtraError, match=r"\.\[pybullet\]"):
+        sources.wsg_fmf_fingers(g)

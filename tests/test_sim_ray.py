@@ -8,6 +8,7 @@ import subprocess
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -61,7 +62,9 @@ def threaded(triples, tiny_cfg, tmp_path_factory):
 @pytest.fixture(scope="module")
 def ray_cluster():
     ray = pytest.importorskip("ray")
-    ray.init(num_cpus=2, logging_level="WARNING", include_dashboard=False)
+    with warnings.catch_warnings():  # JAX's fork warning: Ray's subprocesses exec at once
+        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+        ray.init(num_cpus=2, logging_level="WARNING", include_dashboard=False)
     yield ray
     ray.shutdown()
 

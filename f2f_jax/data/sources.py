@@ -17,7 +17,7 @@ import numpy as np
 import trimesh
 
 from f2f_jax.data.objects import builtin_objects
-from f2f_jax.errors import MeshError
+from f2f_jax.errors import MeshError, MissingExtraError
 
 log = logging.getLogger(__name__)
 
@@ -120,13 +120,33 @@ def load_mesh_dir(directory, *, recursive: bool = True) -> list[trimesh.Trimesh]
     return meshes
 
 
-def pybullet_data_dir() -> Path:
-    """The installed ``pybullet_data`` package directory (ships with the optional pybullet extra)."""
+def pybullet_data_dir(what: str = "the 'pybullet' object source") -> Path:
+    """The installed ``pybullet_data`` package directory (ships with the optional pybullet extra);
+    MissingExtraError (an ImportError) naming ``what`` needs it and the install command."""
     spec = importlib.util.find_spec("pybullet_data")
     if spec is None or not spec.submodule_search_locations:
-        raise ImportError("the 'pybullet' object source needs the pybullet package, which ships the "
-                          f"random_urdfs meshes: {PYBULLET_HINT}")
+        raise MissingExtraError(f"{what} needs the pybullet package, which ships pybullet_data: "
+                                f"{PYBULLET_HINT}")
     return Path(list(spec.submodule_search_locations)[0])
+
+
+def wsg_fmf_mesh() -> trimesh.Trimesh:
+    """Schunk's standard WSG50 finger (WSG-FMF), the mesh pybullet_data ships (zlib licence), in
+    metres in the mesh's own frame (closing along +x, tip at the largest z)."""
+    path = pybullet_data_dir("the WSG-FMF finger") / "gripper" / "meshes" / "WSG-FMF.stl"
+    mesh = load_mesh(path, name="WSG-FMF")
+    mesh.apply_scale(1e-3)  # the file is in millimetres
+    return mesh
+
+
+def wsg_fmf_fingers(cfg=None) -> tuple[np.ndarray, np.ndarray]:
+    """The paper's WSG50 baseline: the standard WSG-FMF fingers as (left, right) finger volumes
+    (``geometry.finger_from_mesh``: face toward the object, tip down, faces meeting at the
+    object's mid-plane at full closure).  Raises MissingExtraError without the pybullet extra."""
+    from f2f_jax.geometry.fingers import finger_from_mesh
+
+    finger = finger_from_mesh(wsg_fmf_mesh(), cfg)
+    return finger, finger.copy()
 
 
 def _pybullet_files() -> list[Path]:

@@ -192,6 +192,44 @@ def wsg50_fingers(cfg=None, *, width: float = 0.02, depth: float = 0.03) -> tupl
     return finger, finger.copy()
 
 
+def finger_from_mesh(mesh: trimesh.Trimesh, cfg=None, *, reach: float = 0.03) -> np.ndarray:
+    """A real finger's mesh as a finger volume, seen the way the object sees it.
+
+    mesh: one finger as mounted on a parallel-jaw gripper, in metres, in the convention of
+    Schunk's WSG50 finger meshes (``WSG-FMF.stl`` in pybullet_data): the jaw closes along +x (the
+    face that meets the object is the mesh's +x side), the finger's length runs along z with its
+    tip at the largest z, its width along y (centred on y = 0 in our u).
+    Each (u, v) column of the volume takes the mesh's first surface seen from the object (a ray
+    along -x) as its height, with the tip one voxel above the cube's floor and the face's foremost
+    point at w = ``reach``: like the flat pads of ``wsg50_fingers``, the two faces meet at the
+    object's mid-plane when the jaws close fully.  Every column is solid from the mount (w = 0) up
+    to its face (the finger stands on a spacer, as a printed finger would, and has no undercut);
+    what lies above the cube's height (the mounting end) and columns whose face is more than
+    ``reach`` behind the foremost point are outside the volume.
+    Returns [R, R, R] float32, a projective TSDF as ``imprint_fingers`` makes.  Raises ValueError
+    for a mesh that no column of the volume meets.
+    """
+    g = _geom(cfg)
+    r, vox = g.resolution, g.voxel_size
+    lo, hi = np.asarray(mesh.bounds, np.float64)
+    if not 0 < reach <= g.cube_size:
+        raise ValueError(f"reach must be in (0, {g.cube_size}] m, got {reach}")
+    c = (np.arange(r) + 0.5) * vox - g.cube_size / 2
+    uu, vv = np.meshgrid(c, c, indexing="ij")
+    z = hi[2] - (vv + g.cube_size / 2 - vox)  # v = -h (one voxel above the floor) at the tip
+    origins = np.stack([np.full(uu.size, hi[0] + 0.01), uu.ravel(), z.ravel()], 1)
+    directions = np.tile([-1.0, 0.0, 0.0], (uu.size, 1))
+    hits, rays, _ = mesh.ray.intersects_location(origins, directions, multiple_hits=False)
+    if len(rays) == 0:
+        raise ValueError("finger mesh: no column of the finger volume meets it (check its axes)")
+    face = np.full(uu.size, -np.inf)
+    face[rays] = hits[:, 0]
+    height = (face - hi[0] + reach).reshape(r, r)  # w of each column's face; -inf: empty column
+    w = (np.arange(r) + 0.5) * vox
+    tsdf = np.clip((w[None, None, :] - height[:, :, None]) / g.truncation, -1.0, 1.0)
+    return largest_component(tsdf.astype(np.float32))
+
+
 def finger_extent(finger_tsdf, cfg=None) -> float:
     """How far the finger reaches from its mount plane (metres): the largest w of any solid voxel,
     to its far face."""

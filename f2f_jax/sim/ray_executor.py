@@ -31,6 +31,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -71,7 +72,11 @@ def connect(address: str | None = None):
     if ray.is_initialized():
         return ray
     try:
-        ray.init(address=address, logging_level=logging.WARNING, log_to_driver=True)
+        with warnings.catch_warnings():
+            # Ray starts its processes with subprocess (fork + exec at once), which JAX's
+            # "os.fork() was called" warning cannot tell from a bare fork: nothing is shared.
+            warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
+            ray.init(address=address, logging_level=logging.WARNING, log_to_driver=True)
     except ConnectionError as exc:
         raise F2FError(
             f"no Ray cluster answers at {address!r} ({exc}). Start one with `ray start --head` on "
