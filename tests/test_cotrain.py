@@ -110,6 +110,9 @@ def test_fitness_net_learns_and_run_reports(uninterrupted):
     assert bce[-1] < bce[0], bce  # held-out BCE after pretraining below the untrained net's
     # the imprint baseline grasps the held-out objects, the flat WSG50 tips do not
     assert summary["success"]["imprint"][0] > summary["success"]["wsg50"][0]
+    # the paper's WSG50 fingers (WSG-FMF, from the pybullet extra of the dev install) beside them
+    fmf = summary["success"]["wsg50-fmf"]
+    assert len(fmf) == 11 and all(0.0 <= x <= 1.0 for x in fmf)
     assert {"generator, cycle 0", f"generator, cycle {CYCLES}"} <= summary["success"].keys()
     assert 0.0 <= summary["ae_heldout_iou"] <= 1.0
     # the generator after pretraining (the paper's ImpGN) is kept apart from the rolling checkpoints

@@ -63,7 +63,8 @@ COTRAIN_FIELDS = ("cycles", "objectives", "imprint_anchor", "generator_lr", "war
                   "objects_per_cycle", "cotrain_batch_size", "fn_target_loss", "gn_target_loss",
                   "min_epochs", "max_epochs")
 _STAGE_ID = {"ae": 1, "fn": 2, "gn": 3, "cycle": 4, "eval": 5}
-BASELINES = ("imprint", "wsg50")
+BASELINES = ("imprint", "wsg50")  # flat pads, as the store's kind "wsg50" has always been
+FMF_KIND = "wsg50-fmf"  # the paper's WSG50 fingers (Schunk WSG-FMF), with the pybullet extra
 
 
 class NaNLossError(F2FError, FloatingPointError):
@@ -254,6 +255,7 @@ class CoTrainRun:
                             cfg=self.cfg, seed=self.seed, n_cut=t.cut_pairs, backend=self.backend,
                             progress=self.progress, executor=self.executor)
         self._baselines()
+        self._fmf_baseline()
         self._log({"stage": "data", "objects": len(names), "train": len(self.train_idx),
                    "test": len(self.test_idx), "store_rows": len(self.store),
                    "seconds": round(time.perf_counter() - start, 2)})
@@ -278,7 +280,7 @@ class CoTrainRun:
         return out
 
     def _baselines(self) -> None:
-        """Imprint and WSG50 pairs on the held-out objects, simulated once into the store."""
+        """Imprint and flat-pad pairs on the held-out objects, simulated once into the store."""
         done = self.store.done_keys()
         if "heldout-baselines" in done:
             return
@@ -292,6 +294,25 @@ class CoTrainRun:
         out = self._simulate(np.stack(objs), np.stack(lefts), np.stack(rights), "held-out baselines")
         self.store.append(np.stack(objs), np.stack(lefts), np.stack(rights), out, kind=kinds,
                           names=names, keys=["heldout-baselines"], cycle=-2)
+
+    def _fmf_baseline(self) -> None:
+        """The WSG-FMF fingers on the held-out objects, simulated once into the store (its own
+        chunk: runs made before it, or without the pybullet extra, gain it when resumed with it)."""
+        if f"heldout-{FMF_KIND}" in self.store.done_keys():
+            return
+        from f2f_jax.data.sources import wsg_fmf_fingers
+
+        try:
+            left, right = wsg_fmf_fingers(self.cfg.geometry)
+        except ImportError as exc:  # MissingExtraError
+            log.info("no %s baseline: %s", FMF_KIND, exc)
+            return
+        objs = np.stack([self.objects[i] for i in self.test_idx])
+        lefts, rights = np.repeat(left[None], len(objs), 0), np.repeat(right[None], len(objs), 0)
+        out = self._simulate(objs, lefts, rights, "held-out WSG-FMF baseline")
+        self.store.append(objs, lefts, rights, out, kind=FMF_KIND,
+                          names=[self.names[i] for i in self.test_idx],
+                          keys=[f"heldout-{FMF_KIND}"], cycle=-2)
 
     def _simulate(self, objs, lefts, rights, what: str) -> np.ndarray:
         from f2f_jax import sim
@@ -654,7 +675,7 @@ class CoTrainRun:
     def summary(self, evals: dict, iou: float, seconds: float) -> dict:
         rows = {}
         hb = self.heldout
-        for kind in BASELINES:
+        for kind in (*BASELINES, FMF_KIND):
             sel = hb["kind"] == kind
             rows[kind] = hb["outcome"][sel].mean(0).round(4).tolist() if sel.any() else None
         for label, res in evals.items():
