@@ -64,7 +64,8 @@ def ray_cluster():
     ray = pytest.importorskip("ray")
     with warnings.catch_warnings():  # JAX's fork warning: Ray's subprocesses exec at once
         warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
-        ray.init(num_cpus=2, logging_level="WARNING", include_dashboard=False)
+        # a fresh local cluster, even where `ray start` left one running on this machine
+        ray.init(address="local", num_cpus=2, logging_level="WARNING", include_dashboard=False)
     yield ray
     ray.shutdown()
 
