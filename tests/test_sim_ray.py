@@ -78,6 +78,9 @@ def test_missing_extra_names_the_install_command(triples, tiny_cfg, monkeypatch)
         sim.evaluate(*[t[:1] for t in triples], cfg=tiny_cfg, executor="dask")
     with pytest.raises(ValueError, match="mujoco"):
         sim.evaluate(*[t[:1] for t in triples], cfg=tiny_cfg, executor="ray", backend="mjx")
+    with pytest.raises(ValueError, match="task_size"):  # said before Ray is needed
+        ray_executor.run(triples[0][:1], triples[1][:1], triples[2][:1], [0], tiny_cfg,
+                         task_size=0)
 
 
 def test_ray_gives_the_threaded_outcomes(ray_cluster, triples, threaded, tiny_cfg, tmp_path):

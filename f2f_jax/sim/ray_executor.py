@@ -145,6 +145,8 @@ def run(objs: Sequence[np.ndarray], lefts, rights, todo: np.ndarray, cfg: Config
     None: pieces are made here by ``cfg.geometry.object_method``.  Returns {index: result}."""
     from f2f_jax.geometry.pieces import cached_pieces, keep_pieces
 
+    if task_size is not None and int(task_size) < 1:
+        raise ValueError(f"task_size must be >= 1, got {task_size}")
     ray = connect(address)
     todo = [int(i) for i in todo]
     results: dict[int, TrialResult] = {}
@@ -152,9 +154,7 @@ def run(objs: Sequence[np.ndarray], lefts, rights, todo: np.ndarray, cfg: Config
         return results
     g = cfg.geometry
     cpus = cluster_cpus(ray)
-    size = int(task_size) if task_size else default_task_size(len(todo), cpus)
-    if size < 1:
-        raise ValueError(f"task_size must be >= 1, got {task_size}")
+    size = default_task_size(len(todo), cpus) if task_size is None else int(task_size)
     pieces_remote, trials_remote = _remote(ray, pieces_task), _remote(ray, trials_task)
     cfg_ref = ray.put(cfg)
 
