@@ -21,7 +21,9 @@ Printed: per finger kind and simulator the grasp success, mean trials passed of 
 R success; per simulator of ours its agreement with PyBullet per trial name, per finger kind,
 overall and as whole vectors; the grasp confusion; the first differing triples.  ``--json PATH``:
 ``agreement`` ({fast, reference}: ``sim_agreement.agreement_stats`` against "pybullet"), ``rates``
-({kind: {simulator: {grasp, trials, S, R}}}, and "all"), n, kinds, objects, seconds, differing.
+({kind: {simulator: {grasp, trials, S, R}}}, and "all"), n, kinds, objects, seconds, differing,
+triples (object, kind) and outcomes ({simulator: one 11-digit string per triple}): enough to judge
+an ablation of our side against the same PyBullet outcomes without running PyBullet again.
 """
 
 from __future__ import annotations
@@ -192,6 +194,8 @@ def main(argv=None) -> int:
         args.json.write_text(json.dumps(dict(
             n=len(triples), kinds=args.kinds, objects=str(args.objects or "builtin"),
             config=args.config, agreement=stats, rates=rates, seconds=seconds,
+            triples=[dict(object=tr["name"], kind=tr["kind"]) for tr in triples],
+            outcomes={s: ["".join(map(str, row)) for row in outcomes[s]] for s in SIMULATORS},
             differing=[dict(index=i, object=triples[i]["name"], kind=kinds[i],
                             **{s: _vector(outcomes[s][i]) for s in SIMULATORS})
                        for i in differing]), indent=1))

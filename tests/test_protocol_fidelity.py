@@ -25,6 +25,10 @@ def test_fidelity_report_on_one_object(tmp_path, capsys):
         assert stats["agreement_per_kind"]["flat"] == 1.0  # all zeros on both sides
         n_diff = sum(1 for d in res["differing"] if d["fast"] != d["pybullet"])
         assert (stats["agreement_vectors"] == 1.0) == (n_diff == 0)
+    assert [t["kind"] for t in res["triples"]] == ["imprint", "flat"]
+    assert all(len(res["outcomes"][s]) == 2 and len(res["outcomes"][s][0]) == 11
+               for s in ("fast", "reference", "pybullet"))
+    assert res["outcomes"]["pybullet"][1] == "0" * 11  # the flat pads: nothing held
     assert "agreement with the PyBullet original" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         fidelity.main(["--n-objects", "0"])
