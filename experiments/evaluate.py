@@ -213,16 +213,16 @@ def main(argv=None) -> int:
     _say(f"{len(objects)} {what}; simulator: {args.backend}{where}; output: {out_dir}")
 
     # -- designers -----------------------------------------------------------------------------
-    designers, table2_rows, skipped = {}, [], []  # skipped: notes on the rows
+    designers, table2_rows, row_notes = {}, [], []
     try:
         designers["WSG50"] = E.wsg_fmf_designer(cfg)
         table2_rows.append("WSG50")
-        skipped.append("WSG50: Schunk's standard WSG-FMF fingers (the mesh pybullet_data ships; "
+        row_notes.append("WSG50: Schunk's standard WSG-FMF fingers (the mesh pybullet_data ships; "
                        "faces meet at the object's mid-plane at full closure, as every finger "
                        "here); Flat pads: ideal flat fingertips (ours, not in the paper)")
     except ImportError as exc:  # MissingExtraError: the mesh ships with pybullet
         _say(f"WSG50 row (WSG-FMF fingers) skipped: {exc}")
-        skipped.append(f"WSG50 (WSG-FMF fingers) not run: {exc}")
+        row_notes.append(f"WSG50 (WSG-FMF fingers) not run: {exc}")
     designers["Flat pads"] = E.wsg50_designer(cfg)
     designers["Imprint"] = E.imprint_designer(cfg)
     table2_rows.append("Imprint")
@@ -295,7 +295,7 @@ def main(argv=None) -> int:
     if 1 in tables:
         t1 = E.table1(designs, objs, cfg, backend=args.backend, progress=progress, object_hulls=hulls,
                       executor=args.executor)
-        t1.notes[:0] = notes + skipped
+        t1.notes[:0] = notes + row_notes
         results["table1"] = {"values": t1.values, "feasible": t1.feasible,
                              "sim_seconds": round(t1.sim_seconds, 2),
                              "outcomes": {k: ["".join(map(str, o)) for o in v]
@@ -306,7 +306,7 @@ def main(argv=None) -> int:
         t2 = E.table2({k: designs[k] for k in table2_rows}, objs, cfg, backend=args.backend,
                       progress=progress, object_hulls=hulls, seed=args.seed,
                       executor=args.executor)
-        t2.notes[:0] = notes + skipped
+        t2.notes[:0] = notes + row_notes
         results["table2"] = {"values": t2.values, "feasible": t2.feasible,
                              "sim_seconds": round(t2.sim_seconds, 2),
                              "grasp": {k: {c: "".join(map(str, v[j, :, 0]))

@@ -145,15 +145,19 @@ def _empty_finger(r: int = 40) -> np.ndarray:
     return np.ones((r, r, r), np.float32)
 
 
-def wsg50_designer(cfg: Config | None = None) -> Designer:
-    """The WSG50's flat fingertips (``geometry.wsg50_fingers``) for every object."""
-    left, right = wsg50_fingers(cfg)
+def _fixed_pair_designer(left: np.ndarray, right: np.ndarray) -> Designer:
+    """The same finger pair for every object."""
 
     def design(objects):
         n = len(_objects_array(objects))
         return np.repeat(left[None], n, 0), np.repeat(right[None], n, 0)
 
     return design
+
+
+def wsg50_designer(cfg: Config | None = None) -> Designer:
+    """The WSG50's flat fingertips (``geometry.wsg50_fingers``) for every object."""
+    return _fixed_pair_designer(*wsg50_fingers(cfg))
 
 
 def wsg_fmf_designer(cfg: Config | None = None) -> Designer:
@@ -161,13 +165,7 @@ def wsg_fmf_designer(cfg: Config | None = None) -> Designer:
     the mesh of the pybullet extra) for every object.  Raises MissingExtraError without it."""
     from f2f_jax.data.sources import wsg_fmf_fingers
 
-    left, right = wsg_fmf_fingers(cfg)
-
-    def design(objects):
-        n = len(_objects_array(objects))
-        return np.repeat(left[None], n, 0), np.repeat(right[None], n, 0)
-
-    return design
+    return _fixed_pair_designer(*wsg_fmf_fingers(cfg))
 
 
 def imprint_designer(cfg: Config | None = None) -> Designer:

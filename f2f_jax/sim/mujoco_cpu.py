@@ -89,10 +89,13 @@ def _object_offsets(object_xy, n: int) -> np.ndarray | None:
     return xy
 
 
-def simulate_candidate(obj_hulls: Hulls, left: np.ndarray, right: np.ndarray, cfg: Config,
+def simulate_candidate(obj_hulls: Hulls | str, left: np.ndarray, right: np.ndarray, cfg: Config,
                        object_xy=None) -> TrialResult:
     """Hulls, model and trials of one feasible candidate; any geometry error is a failure.
-    object_xy: None or (x, y) m, the object's shift on the floor (``scene.build_model``)."""
+    obj_hulls: the object's pieces, or the error message of an object that has none (scored
+    zeros).  object_xy: None or (x, y) m, the object's shift on the floor (``scene.build_model``)."""
+    if isinstance(obj_hulls, str):
+        return TrialResult.zeros(cfg.sim.n_trials, error=f"object hulls: {obj_hulls}")
     place = {} if object_xy is None else {"object_xy": (float(object_xy[0]), float(object_xy[1]))}
     try:
         model = build_model(obj_hulls, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg,
@@ -240,10 +243,7 @@ def _run_threads(objs, lefts, rights, todo, cfg, results, *, threads, show, hull
                 hull_list[i] = hulls
 
         def work(i):
-            hulls = hull_list[i]
-            if isinstance(hulls, str):
-                return TrialResult.zeros(cfg.sim.n_trials, error=f"object hulls: {hulls}")
-            return simulate_candidate(hulls, lefts[i], rights[i], cfg,
+            return simulate_candidate(hull_list[i], lefts[i], rights[i], cfg,
                                       None if offsets is None else offsets[i])
 
         done = pool.map(work, todo)

@@ -116,12 +116,8 @@ def trials_task(cfg: Config, candidates: list, *pieces) -> list[TrialResult]:
 
     out = []
     for slot, left, right, xy in candidates:
-        hulls = pieces[slot]
-        if isinstance(hulls, str):
-            out.append(TrialResult.zeros(cfg.sim.n_trials, error=f"object hulls: {hulls}"))
-            continue
         try:
-            out.append(simulate_candidate(hulls, left, right, cfg, xy))
+            out.append(simulate_candidate(pieces[slot], left, right, cfg, xy))
         except Exception as exc:  # noqa: BLE001 - reported per candidate, the batch goes on
             out.append(TrialResult.zeros(cfg.sim.n_trials, error=f"{type(exc).__name__}: {exc}"))
     return out
