@@ -81,55 +81,110 @@ def _geom_faces(model: mujoco.MjModel, geom: int) -> np.ndarray | None:
     return verts[hull.simplices]
 
 
-def _draw(ax, model, frame: Frame, faces: dict, colours: dict, title: str):
+OBJECT_COLOUR = (0.85, 0.45, 0.2, 1.0)
+FINGER_COLOUR = (0.25, 0.45, 0.8, 0.25)  # see-through, so the object inside a cage stays visible
+
+
+@dataclasses.dataclass
+class Strip:
+    """One simulator's run of a triple, ready to draw: the panels (frame, title), each piece's
+    triangles in its own frame (metres) and colour, keyed by the frames' piece index."""
+
+    label: str
+    panels: list[tuple[Frame, str]]
+    faces: dict[int, np.ndarray]
+    colours: dict[int, tuple]
+    outcome: np.ndarray
+
+
+def _draw(ax, frame: Frame, faces: dict, colours: dict, title: str, top_cm: float):
     for g, tri in faces.items():
         rot = frame.geom_xmat[g].reshape(3, 3)
         world = tri @ rot.T + frame.geom_xpos[g]
         ax.add_collection3d(Poly3DCollection(world * 100, facecolor=colours[g],
                                              edgecolor=(0, 0, 0, 0.15), linewidths=0.1))
-    ax.plot([-8, 8], [0, 0], [0, 0], color="0.4", lw=1)  # the floor, seen edge-on
-    ax.set(xlim=(-8, 8), ylim=(-8, 8), zlim=(-1, 15))
+    half = max(8.0, (top_cm + 1) / 2)
+    ax.plot([-half, half], [0, 0], [0, 0], color="0.4", lw=1)  # the floor, seen edge-on
+    ax.set(xlim=(-half, half), ylim=(-half, half), zlim=(-1, 2 * half - 1))
     ax.set_box_aspect((1, 1, 1))
     ax.view_init(elev=15, azim=-80)  # nearly along -y: the jaws close left-right
     ax.set_title(title, fontsize=8)
     ax.set_xticks([]), ax.set_yticks([]), ax.set_zticks([])
 
 
-def render_trials(model: mujoco.MjModel, cfg: Config, path) -> np.ndarray:
-    """Run the 11 trials of one model, draw the phases to ``path`` (PNG); returns the outcome."""
+def _top_cm(strip: Strip) -> float:
+    """Highest drawn point of a strip's panels (cm)."""
+    top = 0.0
+    for frame, _ in strip.panels:
+        for g, tri in strip.faces.items():
+            z = tri.reshape(-1, 3) @ frame.geom_xmat[g].reshape(3, 3)[2] + frame.geom_xpos[g][2]
+            top = max(top, float(z.max()))
+    return 100 * top
+
+
+def trial_strip(model: mujoco.MjModel, cfg: Config, label: str = "MuJoCo") -> Strip:
+    """Run the 11 trials of one model, keeping the panels to draw: after settling, after
+    closing, the grasp's end, then the end of each push and turned grasp."""
     runner = RecordingRunner(model, cfg)
     result = run_trials(model, cfg, runner=runner)
     ids = runner.ids
-    shown = {int(g): (0.85, 0.45, 0.2, 1.0) for g in ids.object_geoms}
-    # fingers see-through, so the object inside a cage stays visible
-    shown.update({int(g): (0.25, 0.45, 0.8, 0.25) for g in ids.all_finger_geoms})
+    shown = {int(g): OBJECT_COLOUR for g in ids.object_geoms}
+    shown.update({int(g): FINGER_COLOUR for g in ids.all_finger_geoms})
     faces = {g: f for g in shown if (f := _geom_faces(model, g)) is not None}
     # The last frame of each trial, plus the grasp's phases.
     by_trial: dict[str, list[Frame]] = {}
     for f in runner.frames:
         by_trial.setdefault(f.label.split(":")[0], []).append(f)
-    panels = []
     grasp_frames = by_trial.pop("grasp", [])
-    for name, f in zip(("settled", "closed"), grasp_frames[:2]):
-        panels.append((f, name))
+    panels = [(f, name) for name, f in zip(("settled", "closed"), grasp_frames[:2])]
     if grasp_frames:
         panels.append((grasp_frames[-1], f"grasp: {'held' if result.outcome[0] else 'dropped'}"))
     for k, (trial, frames) in enumerate(by_trial.items()):
         index = 1 + k
         ok = result.outcome[index] if index < len(result.outcome) else 0
         panels.append((frames[-1], f"{TRIAL_NAMES[index]}: {'held' if ok else 'failed'}"))
-    cols = min(len(panels), 5)
-    rows = int(np.ceil(len(panels) / cols))
+    label = f"{label}: {_scores(result.outcome)} ({result.steps} steps)"
+    return Strip(label, panels, faces, {g: shown[g] for g in faces}, result.outcome)
+
+
+def _scores(outcome) -> str:
+    scores = "".join(str(int(v)) for v in outcome)
+    return f"{scores[0]} {scores[1:5]} {scores[5:]}"
+
+
+def draw_strips(strips: list[Strip], path, title: str = "", cols: int = 5) -> None:
+    """Draw strips one under another (each on its own rows, ``cols`` panels a row) to ``path``
+    (PNG, written atomically), on one scale: the highest point of any panel fits."""
+    top = max([_top_cm(s) for s in strips] + [14.0])
+    layout = []  # (strip, panel index) per grid cell, None where a strip's last row ends early
+    for strip in strips:
+        n = len(strip.panels)
+        cells = list(range(n)) + [None] * (-n % cols)
+        layout += [(strip, i) if i is not None else None for i in cells]
+    rows = max(1, len(layout) // cols)
     fig = plt.figure(figsize=(3 * cols, 3 * rows))
-    for i, (frame, title) in enumerate(panels):
-        _draw(fig.add_subplot(rows, cols, i + 1, projection="3d"), model, frame, faces, shown, title)
-    scores = "".join(str(int(v)) for v in result.outcome)
-    fig.suptitle(f"outcome {scores[0]} {scores[1:5]} {scores[5:]}  ({result.steps} steps)")
+    for cell, item in enumerate(layout):
+        if item is None:
+            continue
+        strip, i = item
+        frame, name = strip.panels[i]
+        name = f"{strip.label}\n{name}" if i == 0 and len(strips) > 1 else name
+        _draw(fig.add_subplot(rows, cols, cell + 1, projection="3d"), frame, strip.faces,
+              strip.colours, name, top)
+    if title:
+        fig.suptitle(title)
     fig.tight_layout()
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=80, format="png")
     plt.close(fig)
-    return result.outcome
+
+
+def render_trials(model: mujoco.MjModel, cfg: Config, path) -> np.ndarray:
+    """Run the 11 trials of one model, draw the phases to ``path`` (PNG); returns the outcome."""
+    strip = trial_strip(model, cfg)
+    draw_strips([strip], path, title=f"outcome {strip.label.split(': ', 1)[1]}",
+                cols=min(len(strip.panels), 5))
+    return strip.outcome
 
 
 def main(argv=None) -> int:
