@@ -85,6 +85,9 @@ class SimConfig:
     lift_kp: float = 2000.0
     lift_damping: float = 80.0
     open_margin: float = 0.004  # m, clearance between a finger and the object at t = 0
+    # Fingers meet the object only: they pass through each other and the floor (the original's
+    # gripper had self-collision on; benchmarks/protocol_fidelity.py --ablations measures both).
+    finger_collisions: bool = False
     # --- phases (s) ---
     settle_time: float = 0.2
     close_time: float = 0.4
@@ -93,6 +96,10 @@ class SimConfig:
     hold_time: float = 1.0
     push_force: float = 1.5  # N (paper: 1.5 N)
     push_time: float = 1.0 / 12.0  # s (original: 20 steps of 1/240 s)
+    # where the push acts: "com", the object's centre of mass (a push that only shoves), or
+    # "origin", the world origin below the object's centre on the floor (the original's call,
+    # which also twists the object); measured by benchmarks/protocol_fidelity.py --ablations
+    push_point: str = "com"
     push_hold_time: float = 1.7
     success_min_height: float = 0.05  # m, object centre above its start for "lifted"
     robustness_angles_deg: tuple[float, ...] = (-30.0, -20.0, -10.0, 10.0, 20.0, 30.0)

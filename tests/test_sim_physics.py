@@ -257,3 +257,47 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
     assert info.failed.tolist() == [False, True, False]
     assert "coacd found nothing" in info.errors[1]
     assert info.steps[0] == info.steps[2] > 0
+
+
+def test_finger_collisions_let_fingers_that_meet_outside_the_object_hold_each_other_apart(tiny):
+    """Imprint fingers of a 1 cm slab meet each other beside it: by default they pass through
+    each other and both press on the slab; with SimConfig.finger_collisions (the original's
+    self-collision) they stop where they meet, further apart."""
+    slab = box_tsdf((-0.005, -0.025, 0.0), (0.005, 0.025, 0.05), tiny)
+    left, right = imprint_fingers(slab, tiny)
+    obj = pad_hulls([tsdf_to_mesh(slab, tiny.geometry).vertices], tiny.geometry.object_hulls,
+                    tiny.geometry.hull_vertices)
+    openings = {}
+    for collide in (False, True):
+        cfg = tiny.replace(sim=dataclasses.replace(tiny.sim, finger_collisions=collide))
+        model = build_model(obj, finger_hulls(left, tiny), finger_hulls(right, tiny), cfg)
+        runner = GraspRunner(model, cfg)
+        runner.grasp(0.0)
+        openings[collide] = runner.data.qpos[runner.ids.jaw_qpos].sum()
+    assert openings[True] > openings[False] + 0.002, openings
+
+
+def test_a_push_through_the_world_origin_also_turns_the_object(sphere_tsdf, sphere_hulls, tiny):
+    """SimConfig.push_point "origin" (the original's call) applies the push's moment about the
+    centre of mass too: a sideways push then tilts the held sphere, one at its centre does not."""
+    left, right = imprint_fingers(sphere_tsdf, tiny)
+    spec = mujoco.mjtState.mjSTATE_INTEGRATION
+    turned = {}
+    for point in ("com", "origin"):
+        cfg = tiny.replace(sim=dataclasses.replace(tiny.sim, push_point=point))
+        model = build_model(sphere_hulls, finger_hulls(left, tiny), finger_hulls(right, tiny), cfg)
+        runner = GraspRunner(model, cfg)
+        assert runner.grasp(0.0)[0]
+        state = np.empty(mujoco.mj_stateSize(model, spec))
+        mujoco.mj_getState(model, runner.data, state, spec)
+        body = runner.ids.object_body
+        before = runner.data.xquat[body].copy()
+        direction = (0.0, 0.70710678, -0.70710678)  # S2: the torque about x is 1.5 N x 0.7 x z
+        runner.push(state, runner.z_start, direction)
+        turned[point] = 2 * np.degrees(np.arccos(min(1.0, abs(float(np.dot(
+            runner.data.xquat[body], before))))))
+    assert turned["origin"] > turned["com"] + 1.0, turned
+    cfg = tiny.replace(sim=dataclasses.replace(tiny.sim, push_point="corner"))
+    with pytest.raises(ValueError, match="push_point"):
+        GraspRunner(build_model(sphere_hulls, finger_hulls(left, tiny), finger_hulls(right, tiny),
+                                cfg), cfg).push(state, 0.0, direction)

@@ -252,6 +252,10 @@ class MjxGraspSimulator:
         from f2f_jax.sim.protocol import lift_targets
         from f2f_jax.sim.scene import scene_ids
 
+        if cfg.sim.push_point != "com" or cfg.sim.finger_collisions:
+            raise ValueError("the MJX backend pushes at the centre of mass and collides fingers "
+                             "with the object only; push_point='origin' and finger_collisions "
+                             "are plain MuJoCo's (backend='cpu')")
         self.cfg = cfg
         self.sizes = ConvexSizes.for_vertices(cfg.geometry.hull_vertices)
         self.ids = scene_ids(template)
