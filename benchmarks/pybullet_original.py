@@ -27,7 +27,9 @@ What the original did, and what we keep:
   do not reach the floor) gives up after 10,000 iterations and the trial fails; so does a grasp
   whose object never comes to rest in 10,000 steps.  These are the slow failures of the protocol.
 
-Where we differ, on purpose:
+Where we differ, on purpose (each departure but the finger placement is a switch of
+``OriginalProtocol``, default the peer's choice, so ``benchmarks/protocol_fidelity.py --ablations``
+can measure what the original's choice changes):
 
 * The fingers are placed with our frames (``f2f_jax.geometry.finger_pose``) at true relative scale
   (the original stretched its finger meshes by 1.15), and the jaws open from a finger-dependent
@@ -47,6 +49,8 @@ Where we differ, on purpose:
   The meshing itself (V-HACD, seconds per finger in the original) is not timed.
 
 Run ``python benchmarks/pybullet_original.py`` for evaluations per second on imprint triples.
+``render_original`` keeps a triple's poses for ``f2f_jax.sim.view.draw_strips``: the same panels
+as our own viewer, so one triple can be seen as both simulators ran it.
 """
 
 from __future__ import annotations
@@ -110,6 +114,13 @@ class OriginalProtocol:
     check_steps: int = 200  # steps before "does the gripper touch the object"
     push_steps: int = 20  # steps_to_apply_force
     push_hold_steps: int = 200
+    # --- the peer's departures from the original, as switches (defaults: the peer's choice; the
+    # original's value in each comment).  benchmarks/protocol_fidelity.py --ablations flips them.
+    self_collision: bool = False  # True: the two fingers collide with each other (original)
+    push_point: str = "com"  # "origin": the force applied at the world origin (original)
+    centre_of_mass: str = "centroid"  # "base": at the mesh's bottom centre (original)
+    stroke_short: float = 0.0  # jaws stop this far before the cube's faces (original: 0.245)
+    settle_turned: bool = True  # False: no settling after turning the object (not the original)
 
 
 PROTOCOL = OriginalProtocol()
@@ -195,12 +206,18 @@ class OriginalSession:
         """The object resting at the grasp location: its local frame is the world frame (scaled)."""
         s = self.proto.world_scale
         pieces = [piece.astype(np.float64) * s for piece in hulls.pieces()]
-        meshes = [trimesh.convex.convex_hull(piece) for piece in pieces]
-        volumes = np.array([m.volume for m in meshes])
-        centroid = np.sum([v * m.center_mass for v, m in zip(volumes, meshes)], 0) / volumes.sum()
+        if self.proto.centre_of_mass == "base":  # the bottom centre of the pieces' box
+            points = np.concatenate(pieces)
+            lo, hi = points.min(0), points.max(0)
+            centroid = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+        else:
+            meshes = [trimesh.convex.convex_hull(piece) for piece in pieces]
+            volumes = np.array([m.volume for m in meshes])
+            centroid = np.sum([v * m.center_mass for v, m in zip(volumes, meshes)], 0) / volumes.sum()
         body = self.api.createMultiBody(
             baseMass=self.cfg.sim.object_mass, baseCollisionShapeIndex=self._compound(pieces),
             basePosition=[0, 0, 0], baseInertialFramePosition=centroid.tolist())
+        self.object_com = centroid  # the base's inertial frame in its link frame (scaled units)
         self.api.changeDynamics(body, -1, lateralFriction=self.cfg.sim.finger_friction,
                                 rollingFriction=self.proto.object_rolling_friction)
         return body
@@ -234,7 +251,7 @@ class OriginalSession:
             # closed target = the joint limit, where the mount plane reaches the object cube's
             # face: a jaw cannot enter the object's space (the original's stopped its mount
             # 2.45 cm outside it), and any finger reaches into that space before its jaw stops
-            strokes.append(open_x - half_cube)
+            strokes.append(open_x - half_cube - pr.stroke_short)
         n = len(masses)
         body = api.createMultiBody(
             baseMass=pr.base_mass, baseCollisionShapeIndex=base_shape,
@@ -243,13 +260,20 @@ class OriginalSession:
             linkPositions=positions, linkOrientations=[[0, 0, 0, 1]] * n,
             linkInertialFramePositions=[[0, 0, 0]] * n,
             linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
-            linkParentIndices=parents, linkJointTypes=types, linkJointAxis=axes)
+            linkParentIndices=parents, linkJointTypes=types, linkJointAxis=axes,
+            # a multibody's links never meet each other without this flag, whatever the filters
+            flags=p.URDF_USE_SELF_COLLISION if pr.self_collision else 0)
         for link in range(-1, n):
             api.changeDynamics(body, link, localInertiaDiagonal=[pr.link_inertia] * 3)
         jaws = (0, 3)
+        fingers = (2, 5)
+        for a in range(-1, n):  # with self-collision, finger against finger only
+            for b in range(a + 1, n):
+                api.setCollisionFilterPair(body, body, a, b, int(
+                    pr.self_collision and (a, b) == fingers))
         for joint, stroke in zip(jaws, strokes):
             api.changeDynamics(body, joint, jointLowerLimit=0.0, jointUpperLimit=stroke)
-        for finger in (2, 5):
+        for finger in fingers:
             api.changeDynamics(body, finger, lateralFriction=pr.finger_friction,
                                rollingFriction=pr.finger_friction,
                                spinningFriction=pr.finger_friction)
@@ -347,8 +371,11 @@ class OriginalSession:
 
     def _push(self, obj: int, force: np.ndarray):
         for _ in range(self.proto.push_steps):
-            com = self.api.getBasePositionAndOrientation(obj)[0]
-            self.api.applyExternalForce(obj, -1, force.tolist(), com, p.WORLD_FRAME)
+            if self.proto.push_point == "origin":
+                point = (0.0, 0.0, 0.0)
+            else:
+                point = self.api.getBasePositionAndOrientation(obj)[0]
+            self.api.applyExternalForce(obj, -1, force.tolist(), point, p.WORLD_FRAME)
             self._step()
         self._step(self.proto.push_hold_steps)
 
@@ -386,7 +413,8 @@ class OriginalSession:
                 pos = api.getBasePositionAndOrientation(obj)[0]
                 api.resetBasePositionAndOrientation(
                     obj, pos, api.getQuaternionFromEuler([0, 0, math.radians(angle)]))
-                self._settle(obj)  # the original ignored whether it settled here
+                if self.proto.settle_turned:
+                    self._settle(obj)  # the original ignored whether it settled here
                 out[1 + len(sim.stability_directions) + j] = self._grasp(g) and self._held(g, obj)
             return out
         finally:
@@ -394,6 +422,102 @@ class OriginalSession:
                 api.removeState(state)
             api.removeBody(g.body)
             api.removeBody(obj)
+
+
+class RecordingSession(OriginalSession):
+    """An OriginalSession that keeps the pieces' poses at the panels ``f2f_jax.sim.view`` draws:
+    after settling, after closing, and at the end of every trial (after its success check)."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.frames: list[tuple[str, object]] = []
+        self._bodies = None  # (object, gripper) of the triple being simulated
+        self._pieces: list[tuple[int, int, np.ndarray]] = []  # (body, link, vertices in metres)
+
+    def add_object(self, hulls):
+        body = super().add_object(hulls)
+        self._pieces = [(body, -1, piece.astype(np.float64)) for piece in hulls.pieces()]
+        return body
+
+    def add_gripper(self, left, right):
+        g = super().add_gripper(left, right)
+        for side, hulls, link in (("left", left, 2), ("right", right, 5)):
+            rot = finger_pose(side, 0.0, self.cfg)[:3, :3]
+            self._pieces += [(g.body, link, piece.astype(np.float64) @ rot.T)
+                             for piece in hulls.pieces()]
+        return g
+
+    def snapshot(self, label: str):
+        from f2f_jax.sim.view import Frame
+
+        s = self.proto.world_scale
+        pos, mat = [], []
+        for body, link, _ in self._pieces:
+            if link < 0:  # the base reports its centre of mass: back to its link frame
+                com, quat = self.api.getBasePositionAndOrientation(body)
+                rot = np.reshape(self.api.getMatrixFromQuaternion(quat), (3, 3))
+                origin = np.asarray(com) - rot @ self.object_com
+            else:
+                state = self.api.getLinkState(body, link, computeForwardKinematics=1)
+                origin = np.asarray(state[4])
+                rot = np.reshape(self.api.getMatrixFromQuaternion(state[5]), (3, 3))
+            pos.append(origin / s)
+            mat.append(rot.reshape(9))
+        self.frames.append((label, Frame(label, np.array(pos), np.array(mat))))
+
+    def _settle(self, obj):
+        settled = super()._settle(obj)
+        if not self.frames:
+            self.snapshot("settled")
+        return settled
+
+    def _jaws(self, g, targets):
+        super()._jaws(g, targets)
+        if len(self.frames) == 1 and any(t > 0 for t in targets):
+            self.snapshot("closed")
+
+    def _grasp(self, g):
+        moved = super()._grasp(g)
+        if not moved:  # a move gave up: the trial ends here, without a success check
+            self.snapshot("end")
+        return moved
+
+    def _held(self, g, obj):
+        held = super()._held(g, obj)
+        self.snapshot("end")
+        return held
+
+
+def render_original(object_hulls: Hulls, left_hulls: Hulls, right_hulls: Hulls, *,
+                    cfg: Config | None = None, label: str = "PyBullet original"):
+    """One triple through the original protocol, kept for drawing: an ``f2f_jax.sim.view.Strip``
+    (draw it with ``view.draw_strips``, beside our own ``view.trial_strip``)."""
+    from scipy.spatial import QhullError
+
+    from f2f_jax.config import TRIAL_NAMES
+    from f2f_jax.sim.view import FINGER_COLOUR, OBJECT_COLOUR, Strip
+
+    with RecordingSession(cfg) as session:
+        outcome = session.simulate(object_hulls, left_hulls, right_hulls)
+        steps = session.steps
+        faces, colours = {}, {}
+        for k, (_, link, vertices) in enumerate(session._pieces):
+            try:
+                faces[k] = vertices[ConvexHull(vertices).simplices]
+            except QhullError:  # a flat placeholder is not drawn
+                continue
+            colours[k] = OBJECT_COLOUR if link < 0 else FINGER_COLOUR
+        frames = session.frames
+    panels = [(f, name) for name, f in frames if name != "end"]
+    trials = [f for name, f in frames if name == "end"]
+    ran = [i for i in range(N_TRIALS) if i == 0 or outcome[0]]  # a dropped grasp ends the triple
+    for i, frame in zip(ran, trials):
+        verdict = ("held" if outcome[0] else "dropped") if i == 0 else (
+            "held" if outcome[i] else "failed")
+        panels.append((frame, f"{TRIAL_NAMES[i]}: {verdict}"))
+    scores = "".join(map(str, outcome))
+    return Strip(f"{label}: {scores[0]} {scores[1:5]} {scores[5:]} ({steps} steps)", panels,
+                 faces, colours, outcome)
 
 
 def simulate_original(object_hulls: Hulls, left_hulls: Hulls, right_hulls: Hulls, *,
@@ -408,8 +532,8 @@ def simulate_original(object_hulls: Hulls, left_hulls: Hulls, right_hulls: Hulls
         return session.simulate(object_hulls, left_hulls, right_hulls)
 
 
-def evaluate_original(objects_hulls, lefts_hulls, rights_hulls, *,
-                      cfg: Config | None = None) -> tuple[np.ndarray, dict]:
+def evaluate_original(objects_hulls, lefts_hulls, rights_hulls, *, cfg: Config | None = None,
+                      protocol: OriginalProtocol = PROTOCOL) -> tuple[np.ndarray, dict]:
     """Many triples through the original protocol, one after another in one client and process.
 
     objects_hulls, lefts_hulls, rights_hulls: sequences of N ``Hulls``.  Returns outcomes [N, 11]
@@ -423,7 +547,7 @@ def evaluate_original(objects_hulls, lefts_hulls, rights_hulls, *,
     outcomes = np.zeros((len(triples), N_TRIALS), np.uint8)
     per_eval = np.zeros(len(triples), np.int64)
     per_eval_s = np.zeros(len(triples), np.float64)
-    with OriginalSession(cfg) as session:
+    with OriginalSession(cfg, protocol) as session:
         start = time.perf_counter()
         for i, (obj, left, right) in enumerate(triples):
             before, t0 = session.steps, time.perf_counter()

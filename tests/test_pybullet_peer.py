@@ -99,3 +99,42 @@ def test_a_push_beyond_the_friction_grip_breaks_the_hold(cfg, sphere_object):
     out = peer.simulate_original(sphere_object, left, right, cfg=pushy)
     assert out[0] == 1
     assert not out[1:3].any(), f"5 N pushes should break a 2 N friction grip: {out}"
+
+
+def test_self_collision_switch_stops_fingers_that_meet_outside_the_object(cfg):
+    """The original's gripper had self-collision on: imprint fingers of a 1 cm slab then meet
+    each other before they reach it.  The peer's default lets them pass through each other."""
+    import trimesh
+
+    from f2f_jax.geometry import mesh_to_tsdf
+
+    slab = mesh_to_tsdf(trimesh.creation.box((0.01, 0.05, 0.05)), cfg.geometry)
+    left, right = (finger_hulls(f, cfg) for f in imprint_fingers(slab, cfg))
+    closed = {}
+    for collide in (False, True):
+        proto = dataclasses.replace(PROTO, self_collision=collide)
+        with peer.OriginalSession(cfg, proto) as session:
+            g = session.add_gripper(left, right)
+            session._jaws(g, g.strokes)
+            closed[collide] = [session.api.getJointState(g.body, j)[0] for j in g.jaws]
+    # jaw positions: travel inwards, in the x10 world (0.1 = 1 cm); colliding fingers travel less
+    assert min(closed[False]) > max(closed[True]) + 0.1, closed
+
+
+def test_a_recorded_run_draws_the_same_outcome_as_a_plain_one(cfg, sphere_object, sphere_imprint,
+                                                             tmp_path):
+    """render_original records the panels of f2f_jax.sim.view without changing the physics:
+    same outcome as simulate_original, one panel per trial after settled and closed."""
+    from f2f_jax.sim import view
+
+    plain = peer.simulate_original(sphere_object, *sphere_imprint, cfg=cfg)
+    strip = peer.render_original(sphere_object, *sphere_imprint, cfg=cfg)
+    np.testing.assert_array_equal(strip.outcome, plain)
+    assert [name.split(":")[0] for _, name in strip.panels] == [
+        "settled", "closed", "grasp", "S1", "S2", "S3", "S4",
+        "R-30", "R-20", "R-10", "R+10", "R+20", "R+30"]
+    lifted = strip.panels[2][0].geom_xpos[:, 2]  # metres, out of Bullet's x10 world
+    assert 0.05 < lifted.max() < 0.3
+    out = tmp_path / "both.png"
+    view.draw_strips([strip, strip], out, "twice")
+    assert out.stat().st_size > 10_000
