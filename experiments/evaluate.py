@@ -26,6 +26,8 @@ or runs/eval without a run) and prints the markdown.
 from __future__ import annotations
 
 import argparse
+import collections
+import functools
 import json
 import sys
 import time
@@ -108,7 +110,9 @@ def main(argv=None) -> int:
     p.add_argument("--config", default=None,
                    help="tiny | default | paper: the simulator settings (default: the run's, else default)")
     p.add_argument("--design-search", type=int, default=None, metavar="K",
-                   help="add the row 'Fit2Form + search (K, verify)': f2f_jax.design with K candidates")
+                   help="add the rows 'Fit2Form + search (K, verify)' (f2f_jax.design with the "
+                        "generator's K candidates) and 'Design pool (K + imprints, verify)' (the "
+                        "same plus the imprint pair and its variants: design()'s default)")
     p.add_argument("--fitness-ranking", type=int, default=None, metavar="K",
                    help="also measure how well the fitness net ranks K candidate designs per "
                         "object (all simulated): within-object Spearman, its pick vs the best")
@@ -214,6 +218,7 @@ def main(argv=None) -> int:
 
     # -- designers -----------------------------------------------------------------------------
     designers, table2_rows, row_notes = {}, [], []
+    pool_origins = []  # FingerPair.origin of the design pool's picks, one per object
     try:
         designers["WSG50"] = E.wsg_fmf_designer(cfg)
         table2_rows.append("WSG50")
@@ -250,13 +255,23 @@ def main(argv=None) -> int:
                     _say(f"no design API yet ({exc}): skipping the design-search row")
                 else:
                     k = args.design_search
-                    name = f"Fit2Form + search ({k}, verify)"
-                    designers[name] = E.pair_designer(
-                        lambda objs, k=k: design(objs, params=models, candidates=k, verify=True,
-                                                 backend=args.backend, executor=args.executor,
-                                                 progress=False if args.quiet else None),
-                        batched=True, desc=name)
+                    search = functools.partial(design, params=models, candidates=k, verify=True,
+                                               backend=args.backend, executor=args.executor,
+                                               progress=False if args.quiet else None)
+                    name = f"Fit2Form + search ({k}, verify)"  # the generator's candidates only
+                    designers[name] = E.pair_designer(functools.partial(search, imprint=False),
+                                                      batched=True, desc=name)
                     table2_rows.append(name)
+                    # design()'s default with verify: the imprint pair and its variants join
+                    pool_name = f"Design pool ({k} + imprints, verify)"
+
+                    def pool(objs):
+                        pairs = search(objs, imprint=True)
+                        pool_origins.extend(pair.origin for pair in pairs)
+                        return pairs
+
+                    designers[pool_name] = E.pair_designer(pool, batched=True, desc=pool_name)
+                    table2_rows.append(pool_name)
     elif args.design_search:
         _say("--design-search needs --run-dir with a checkpoint: skipping that row")
     ranked = models if run_dir is not None and args.fitness_ranking else None
@@ -285,6 +300,12 @@ def main(argv=None) -> int:
     for name, designer in designers.items():
         _say(f"designing: {name}")
         designs.update(E.make_designs({name: designer}, objs, progress=progress))
+    if pool_origins:
+        picks = ", ".join(f"{n} {origin}" for origin, n in
+                          collections.Counter(pool_origins).most_common())
+        row_notes.append(f"Design pool: where the verified picks of {len(pool_origins)} objects "
+                         f"came from: {picks}")
+        _say(row_notes[-1])
     if notes:  # prepare_objects dropped some: keep the names in step
         dropped = {int(n.split()[1]) for n in notes if n.startswith("object ")}
         names = [n for i, n in enumerate(names) if i not in dropped]

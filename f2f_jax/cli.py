@@ -41,9 +41,18 @@ def _design_parser() -> argparse.ArgumentParser:
                    "ranked; default 8")
     p.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
                    help="simulate the feasible candidates and rank by simulated outcome (default on)")
+    p.add_argument("--imprint", action=argparse.BooleanOptionalAction, default=None,
+                   help="also rank the object's imprint pair and two variants of it, so a verified "
+                        "pick never passes fewer trials than imprints (default: with --verify)")
     p.add_argument("--seed", type=int, default=0, help="seed of the candidates' latent noise")
     p.add_argument("--backend", choices=("mujoco", "mjx"), default="mujoco",
                    help="simulator for --verify (default mujoco, on CPU threads)")
+    # as sim.ray_executor.add_cli_arguments, which would import the simulator before the checks
+    p.add_argument("--executor", default="threads", choices=["threads", "ray"],
+                   help="where --verify simulates: threads of this machine (default) or Ray tasks "
+                        "on a cluster (needs pip install -e \".[ray]\")")
+    p.add_argument("--ray-address", default=None, metavar="ADDR",
+                   help="--executor ray: the cluster's head, 'auto' or host:port")
     p.add_argument("--force", action="store_true", help="replace a non-empty --out directory")
     return p
 
@@ -89,6 +98,7 @@ def design_main(argv: list[str] | None = None) -> int:
 
 def _run_design(args) -> int:
     from f2f_jax.data.sources import load_mesh
+    from f2f_jax.sim.ray_executor import executor_from_cli
 
     mesh = load_mesh(args.mesh)
     models = _load_models(args.run_dir)
@@ -100,14 +110,16 @@ def _run_design(args) -> int:
     from f2f_jax.geometry import mesh_to_tsdf
 
     obj = mesh_to_tsdf(mesh, models.config.geometry, name=str(args.mesh))
+    executor = executor_from_cli(args) if args.verify else "threads"
     with warnings.catch_warnings():
         # the one-line error below says it; the warning would repeat it
         warnings.simplefilter("ignore", design_module.InfeasibleDesignWarning)
         pair = design_module.design(obj, params=models, key=jax.random.key(args.seed),
                                     candidates=args.candidates, verify=args.verify,
-                                    backend=args.backend)
+                                    backend=args.backend, imprint=args.imprint,
+                                    executor=executor)
     if not pair.feasible:
-        return _fail(f"no feasible finger pair among {args.candidates} candidates for {args.mesh} "
+        return _fail(f"no feasible finger pair among {pair.n_candidates} candidates for {args.mesh} "
                      f"(best predicted mean {pair.predicted_mean:.2f}); try more --candidates or "
                      "a better-trained --run-dir")
 

@@ -15,7 +15,11 @@ How a design is chosen, per object:
    (``geometry.largest_component``, ``geometry.is_feasible``), as in co-training.
 3. The fitness net predicts the 11 outcome probabilities of every candidate (one jitted call).
 4. With ``verify=True`` the feasible candidates of all objects are simulated in one
-   ``sim.evaluate`` call.
+   ``sim.evaluate`` call.  The pool then also holds the object's imprint pair and two variants
+   of it (``IMPRINT_VARIANTS``: the imprints of the object grown and shrunk by one voxel, a
+   looser and a tighter fit), so the verified pick never passes fewer of its simulated trials
+   than the imprint fingers would; ``imprint=False`` leaves them out, ``imprint=True`` adds them
+   without ``verify`` too.  ``FingerPair.origin`` says where the pick came from.
 5. Ranking: feasible first, then the simulated outcome (number of the 11 trials passed, when
    verified), then the mean predicted probability, then the candidate index (the generator's own
    output wins full ties).  When no candidate is feasible the best-predicted one is returned with
@@ -38,7 +42,8 @@ import numpy as np
 
 from f2f_jax.config import TRIAL_NAMES, GeometryConfig, NetConfig
 from f2f_jax.errors import F2FError, VolumeError
-from f2f_jax.geometry import check_tsdf, export_finger_stl, is_feasible, largest_component
+from f2f_jax.geometry import (check_tsdf, export_finger_stl, imprint_fingers, is_feasible,
+                              largest_component)
 from f2f_jax.nets import RESOLUTION, FingerGenerator, FitnessNet, fitness_input
 from f2f_jax.train.state import Models
 
@@ -49,6 +54,12 @@ LATENT_NOISE = 0.2
 # (default config: ~1 GB per 256 fitness triples on a CPU) without a Python loop.
 CHUNK = 256
 BACKENDS = ("mujoco", "mjx")
+# The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
+# Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
+IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (
+    ("imprint", 0.0), ("imprint, 1 voxel looser", 1.0), ("imprint, 1 voxel tighter", -1.0))
+GENERATOR = "generator"
+GENERATOR_NOISE = "generator + latent noise"
 
 
 class InfeasibleDesignWarning(UserWarning):
@@ -66,6 +77,8 @@ class FingerPair:
     object: [40, 40, 40] float32, the input object volume.
     candidate: which of the ``n_candidates`` it was (0: the generator's own output);
     n_feasible: how many candidates were feasible; source: the models' checkpoint.
+    origin: where the candidate came from: "generator" (its own output), "generator + latent
+        noise", or one of the ``IMPRINT_VARIANTS`` ("imprint", ...).
     """
 
     left: np.ndarray
@@ -79,6 +92,7 @@ class FingerPair:
     n_feasible: int = 0
     source: str = ""
     geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
+    origin: str = GENERATOR
 
     @property
     def predicted_mean(self) -> float:
@@ -121,13 +135,13 @@ class FingerPair:
                        {n: int(s) for n, s in zip(TRIAL_NAMES, self.simulated)}),
             simulated_passed=None if self.simulated is None else int(np.sum(self.simulated)),
             candidate=int(self.candidate), n_candidates=int(self.n_candidates),
-            n_feasible=int(self.n_feasible), source=self.source,
+            n_feasible=int(self.n_feasible), origin=self.origin, source=self.source,
         )
 
     def _headline(self) -> str:
         state = "feasible" if self.feasible else "NOT feasible"
-        text = (f"{state}, candidate {self.candidate} of {self.n_candidates} "
-                f"({self.n_feasible} feasible), predicted mean {self.predicted_mean:.2f}")
+        text = (f"{state}, candidate {self.candidate} of {self.n_candidates} ({self.origin}; "
+                f"{self.n_feasible} feasible), predicted mean {self.predicted_mean:.2f}")
         if self.simulated is not None:
             text += f", simulated {int(np.sum(self.simulated))}/{len(self.simulated)}"
         return text
@@ -149,7 +163,8 @@ class FingerPair:
 
 def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int = 1,
            verify: bool = False, backend: str = "mujoco", run_dir=None,
-           noise: float = LATENT_NOISE, progress: bool | None = None, executor: str = "threads"):
+           noise: float = LATENT_NOISE, progress: bool | None = None, executor: str = "threads",
+           imprint: bool | None = None):
     """Design a finger pair for each object.
 
     obj_tsdf: [40, 40, 40] float32 object TSDF (negative inside) -> FingerPair, or a batch
@@ -160,6 +175,8 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
     candidates: K >= 1 designs sampled per object (see the module docstring for the ranking).
     verify: simulate the feasible candidates (one ``sim.evaluate`` call with ``backend``) and rank
         by simulated outcome first; executor: that call's (``sim.evaluate``: "threads" or "ray").
+    imprint: also put the object's imprint pair and its variants (``IMPRINT_VARIANTS``) in the
+        pool, after the K generated candidates; None (default): when ``verify``.
     noise: standard deviation of the latent noise (latent units; the latents span [-1, 1]).
     progress: the simulation's progress bar with ``verify`` (None: ``sim.evaluate``'s default).
 
@@ -182,8 +199,16 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
                         f"checkpoint), got {type(models).__name__}")
     key = _as_key(key)
     g = models.config.geometry
+    if imprint is None:
+        imprint = verify
 
     lefts, rights = propose(models, objects, key, candidates, noise)
+    origins = [GENERATOR] + [GENERATOR_NOISE] * (candidates - 1)
+    if imprint:
+        imp_lefts, imp_rights = imprint_candidates(objects, g)
+        lefts = np.concatenate([lefts, imp_lefts], axis=1)
+        rights = np.concatenate([rights, imp_rights], axis=1)
+        origins += [name for name, _ in IMPRINT_VARIANTS]
     feasible = postprocess(lefts, rights, g)
     predicted = predict(models, objects, lefts, rights)
     if not np.all(np.isfinite(predicted)):
@@ -196,7 +221,7 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
     hopeless = np.nonzero(~feasible.any(axis=1))[0]
     if len(hopeless):
         which = "the object" if single else f"objects {hopeless.tolist()}"
-        warnings.warn(f"design: none of the {candidates} candidates for {which} is feasible; "
+        warnings.warn(f"design: none of the {len(origins)} candidates for {which} is feasible; "
                       "returning the best-predicted one with feasible=False (try more candidates "
                       "or a better-trained checkpoint)", InfeasibleDesignWarning, stacklevel=2)
 
@@ -207,8 +232,8 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
             predicted=predicted[b, k].astype(np.float32),
             simulated=None if simulated is None else simulated[b, k].copy(),
             feasible=bool(feasible[b, k]), object=objects[b].copy(), candidate=int(k),
-            n_candidates=candidates, n_feasible=int(feasible[b].sum()), source=models.source,
-            geometry=g))
+            n_candidates=len(origins), n_feasible=int(feasible[b].sum()), source=models.source,
+            geometry=g, origin=origins[k]))
     return pairs[0] if single else pairs
 
 
@@ -227,6 +252,20 @@ def propose(models: Models, objects: np.ndarray, key, candidates: int,
                                  _as_key(key), jnp.float32(noise), candidates=int(candidates),
                                  chunk=CHUNK)
     return np.array(lefts), np.array(rights)
+
+
+def imprint_candidates(objects: np.ndarray,
+                       geometry: GeometryConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The imprint pairs of ``IMPRINT_VARIANTS``: objects [B, R, R, R] -> lefts, rights
+    [B, V, R, R, R] float32 (the object grown by ``voxels`` before imprinting: its TSDF, in units
+    of the truncation distance, lowered by voxels x voxel size / truncation)."""
+    g = geometry or GeometryConfig()
+    step = g.voxel_size / g.truncation
+    pairs = [[imprint_fingers(np.clip(obj - voxels * step, -1.0, 1.0).astype(np.float32), g)
+              for _, voxels in IMPRINT_VARIANTS] for obj in np.asarray(objects, np.float32)]
+    lefts = np.array([[left for left, _ in row] for row in pairs], np.float32)
+    rights = np.array([[right for _, right in row] for row in pairs], np.float32)
+    return lefts, rights
 
 
 def postprocess(lefts: np.ndarray, rights: np.ndarray,

@@ -243,10 +243,16 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     out = tmp_path / "eval"
     args = ["--run-dir", str(run_dir), "--extra", f"cycle 0={run_dir / 'pretrained'}", "--objects", "1",
             "--fresh", "1", "--seed", "5", "--neighbourhood", "2", "--tables", "1", "--no-randemb",
-            "--quiet", "--out", str(out)]
+            "--design-search", "1", "--quiet", "--out", str(out)]
     assert cli.main(args) == 0, capsys.readouterr().err
     res = json.loads((out / "results.json").read_text())
     assert res["objects"] == 2 and res["names"][1].startswith("fresh/")
+    # the design pool (the generator's candidate and the imprints, verified) passes, object by
+    # object, at least the trials the Imprint row's fingers pass: they are in its pool
+    outcomes = res["table1"]["outcomes"]
+    pool = [sum(map(int, o)) for o in outcomes["Design pool (1 + imprints, verify)"]]
+    assert all(a >= b for a, b in zip(pool, [sum(map(int, o)) for o in outcomes["Imprint"]]))
+    assert "Fit2Form + search (1, verify)" in outcomes
     nb = res["neighbourhood"]
     (first, after), (name, before) = nb["stats"].items()
     assert name == "cycle 0" and after["candidates"] == 2 and after["objects"] == 2
@@ -254,4 +260,5 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     gain = nb["gains"]["cycle 0"]["trials_mean"]
     assert gain["diff"] == pytest.approx(after["trials_mean"] - before["trials_mean"])
     assert gain["ci_low"] <= gain["diff"] <= gain["ci_high"]
-    assert "paired over objects" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "paired over objects" in printed and "Design pool: where the verified picks" in printed

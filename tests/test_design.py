@@ -249,7 +249,8 @@ def test_cli_writes_four_files(models, sphere_stl, tmp_path, monkeypatch, capsys
 
     monkeypatch.setattr(design_module, "propose", propose)
     out = tmp_path / "out"
-    assert design_main([str(sphere_stl), "--out", str(out), "--candidates", "2"]) == 0
+    assert design_main([str(sphere_stl), "--out", str(out), "--candidates", "2",
+                        "--no-imprint"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["design.png", "left.stl", "right.stl",
                                                      "scores.json"]
     assert (out / "design.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -260,6 +261,7 @@ def test_cli_writes_four_files(models, sphere_stl, tmp_path, monkeypatch, capsys
     assert set(scores["simulated"].values()) <= {0, 1}
     # the imprint pair grasps the sphere, flat fingertips on a sphere do not lift it
     assert scores["simulated"]["grasp"] == 1 and scores["candidate"] == 0
+    assert scores["n_candidates"] == 2 and scores["origin"] == "generator"
     assert "grasp" in capsys.readouterr().out
     # --force replaces the directory whole; without --verify nothing is simulated
     (out / "stale.txt").write_text("old")
@@ -270,6 +272,44 @@ def test_cli_writes_four_files(models, sphere_stl, tmp_path, monkeypatch, capsys
     scores = json.loads((out / "scores.json").read_text())
     assert scores["simulated"] is None and not scores["verified"]
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".out.")]  # no temp dirs left
+
+
+def test_verified_pool_holds_the_imprints_and_never_loses_to_them(models, sphere_tsdf,
+                                                                  monkeypatch, tmp_path):
+    """Generated candidates that cannot lift the sphere (flat tips at mu 0.2): the verified pick
+    is then one of the imprint candidates the pool adds, and it passes at least the trials the
+    imprint pair passes on its own."""
+    from f2f_jax.sim import evaluate
+
+    monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path / "cache"))
+    wl, wr = wsg50_fingers()
+    monkeypatch.setattr(design_module, "propose", lambda m, objects, key, candidates, noise=0.0: (
+        np.stack([[wl, wl]]), np.stack([[wr, wr]])))
+    pair = design_module.design(sphere_tsdf, params=models, candidates=2, verify=True)
+    names = [name for name, _ in design_module.IMPRINT_VARIANTS]
+    assert pair.n_candidates == 2 + len(names) and pair.origin in names
+    assert pair.candidate == 2 + names.index(pair.origin)
+    left, right = imprint_fingers(sphere_tsdf)
+    alone = evaluate(sphere_tsdf[None], left[None], right[None], cfg=models.config, progress=False)
+    assert pair.simulated[0] == 1 and pair.simulated.sum() >= alone.sum()
+    assert pair.scores()["origin"] == pair.origin and pair.origin in str(pair)
+    # without verify the pool is the generator's alone, unless asked for
+    assert design_module.design(sphere_tsdf, params=models, candidates=2).n_candidates == 2
+    assert design_module.design(sphere_tsdf, params=models, candidates=2,
+                                imprint=True).n_candidates == 5
+
+
+def test_imprint_variants_fit_looser_and_tighter(sphere_tsdf):
+    lefts, rights = design_module.imprint_candidates(sphere_tsdf[None])
+    assert lefts.shape == rights.shape == (1, len(design_module.IMPRINT_VARIANTS), R, R, R)
+    exact = imprint_fingers(sphere_tsdf)
+    np.testing.assert_array_equal(lefts[0, 0], exact[0])
+    np.testing.assert_array_equal(rights[0, 0], exact[1])
+    solid = {name: int((lefts[0, i] < 0).sum())
+             for i, (name, _) in enumerate(design_module.IMPRINT_VARIANTS)}
+    # grown by a voxel, the object leaves a voxel-deep layer of the finger empty; shrunk, fills one
+    assert solid["imprint, 1 voxel looser"] < solid["imprint"] < solid["imprint, 1 voxel tighter"]
+    assert all(is_feasible(f) for f in (*lefts[0], *rights[0]))
 
 
 def test_cli_bad_inputs_write_nothing(sphere_stl, tmp_path, capsys):
