@@ -3,6 +3,7 @@
     python benchmarks/protocol_fidelity.py                          # 64 builtin objects x 5 kinds
     python benchmarks/protocol_fidelity.py --objects DIR --n-objects 15 --json fidelity.json
     python benchmarks/protocol_fidelity.py --n-objects 2 --config tiny --kinds imprint  # smoke
+    python benchmarks/protocol_fidelity.py --kinds imprint wsg50-fmf --ablations --render both.png
 
 Three simulators score every triple: our MuJoCo protocol under the default ``fast`` preset and
 under ``reference`` (``sim.evaluate``), and the PyBullet original (``benchmarks/
@@ -24,6 +25,14 @@ overall and as whole vectors; the grasp confusion; the first differing triples. 
 ({kind: {simulator: {grasp, trials, S, R}}}, and "all"), n, kinds, objects, seconds, differing,
 triples (object, kind) and outcomes ({simulator: one 11-digit string per triple}): enough to judge
 an ablation of our side against the same PyBullet outcomes without running PyBullet again.
+
+``--render PNG`` draws the first differing triple (an imprint pair where one differs) as both
+simulators ran it, one strip of panels each.  ``--ablations`` then changes one difference between
+the protocols at a time (``ABLATIONS``: a ``SimConfig`` field of ours, or a switch of the PyBullet
+peer, several of them the original's own choices that the peer departs from) and judges the
+changed side against the other side's unchanged outcomes: a table of each change's agreement,
+the share of its own side's trials it flipped and the rates per finger kind (``ablations`` in
+the JSON).  ``--ablations lift open`` runs only those whose label holds one of the words.
 """
 
 from __future__ import annotations
@@ -83,24 +92,130 @@ def make_triples(tsdfs: np.ndarray, names: list[str], kinds, seed: int, cfg) -> 
     return triples
 
 
+# One difference between the two protocols at a time, on one side: (side, label, changes).
+# "ours" changes are SimConfig fields of the ``fast`` preset; "pybullet" changes are
+# ``pybullet_original.OriginalProtocol`` fields (the peer's departures from the original are
+# switches there) or, where no such field exists, SimConfig fields the peer reads.
+ABLATIONS: tuple[tuple[str, str, dict], ...] = (
+    ("ours", "lift as hard as the original's (lift_time 0.25 s: 11 m/s^2 peak)", dict(lift_time=0.25)),
+    ("ours", "fingers collide with each other and the floor", dict(finger_collisions=True)),
+    ("ours", "push through the world origin (the original's call)", dict(push_point="origin")),
+    ("ours", "jaws close from 3 cm open (open_margin 0.03)", dict(open_margin=0.03)),
+    ("ours", "pyramidal friction cone", dict(cone="pyramidal")),
+    ("ours", "no torsional friction (condim 3)", dict(condim=3)),
+    ("ours", "impratio 1", dict(impratio=1.0)),
+    ("ours", "finger-object friction 0.4", dict(finger_friction=0.4)),
+    ("pybullet", "gentle lift (lift_max_force 20: 1.0 m/s^2 peak; ours 1.2)", dict(lift_max_force=20.0)),
+    ("pybullet", "jaws open 3 cm clear of the cube (open_clearance 0.3)", dict(open_clearance=0.3)),
+    ("pybullet", "fingers collide with each other (the original's)", dict(self_collision=True)),
+    ("pybullet", "push at the world origin (the original's)", dict(push_point="origin")),
+    ("pybullet", "centre of mass at the bottom centre (the original's)", dict(centre_of_mass="base")),
+    ("pybullet", "jaws stop 2.45 cm short of the cube (the original's)", dict(stroke_short=0.245)),
+    ("pybullet", "no settling before the turned grasps", dict(settle_turned=False)),
+    ("pybullet", "finger-object friction 0.4", dict(finger_friction=0.4)),
+    ("pybullet", "gentle lift and jaws open 3 cm clear, together",
+     dict(lift_max_force=20.0, open_clearance=0.3)),
+)
+
+
 def _peer_chunk(args):
     """Worker process: one PyBullet client over a chunk of (object, left, right) hulls."""
-    objects, lefts, rights, cfg = args
+    objects, lefts, rights, cfg, changes = args
     sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import dataclasses
+
     import pybullet_original as peer
 
-    out, stats = peer.evaluate_original(objects, lefts, rights, cfg=cfg)
+    fields = {f.name for f in dataclasses.fields(peer.OriginalProtocol)}
+    protocol = dataclasses.replace(peer.PROTOCOL, **{k: v for k, v in changes.items() if k in fields})
+    sim_changes = {k: v for k, v in changes.items() if k not in fields}
+    if sim_changes:
+        cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, **sim_changes))
+    out, stats = peer.evaluate_original(objects, lefts, rights, cfg=cfg, protocol=protocol)
     return out, int(stats["steps"])
 
 
-def run_peer(objects, lefts, rights, cfg, workers: int):
-    """The PyBullet original on every triple, in ``workers`` spawned processes: ([N, 11], steps)."""
+def run_peer(objects, lefts, rights, cfg, workers: int, changes: dict | None = None):
+    """The PyBullet original on every triple, in ``workers`` spawned processes: ([N, 11], steps).
+
+    changes: ``OriginalProtocol`` fields (else ``SimConfig`` fields) to change, for an ablation.
+    """
     n = len(objects)
     bounds = np.linspace(0, n, max(1, min(workers, n)) + 1).astype(int)
-    chunks = [(objects[a:b], lefts[a:b], rights[a:b], cfg) for a, b in zip(bounds[:-1], bounds[1:])]
+    chunks = [(objects[a:b], lefts[a:b], rights[a:b], cfg, dict(changes or {}))
+              for a, b in zip(bounds[:-1], bounds[1:])]
     with ProcessPoolExecutor(len(chunks), mp_context=get_context("spawn")) as pool:
         parts = list(pool.map(_peer_chunk, chunks))
     return np.concatenate([p[0] for p in parts]), sum(p[1] for p in parts)
+
+
+def render_both(triple: dict, object_hulls, left_hulls, right_hulls, cfg, path: Path) -> None:
+    """One triple as our protocol (``cfg``) and the PyBullet original ran it: two strips of the
+    same panels on one scale (``f2f_jax.sim.view.draw_strips``)."""
+    import pybullet_original as peer
+
+    from f2f_jax.sim import view
+
+    model = sim.build_model(object_hulls, left_hulls, right_hulls, cfg)
+    ours = view.trial_strip(model, cfg, f"ours ({config.sim_preset_name(cfg)})")
+    theirs = peer.render_original(object_hulls, left_hulls, right_hulls, cfg=cfg)
+    view.draw_strips([ours, theirs], path, f"{triple['name']}, {triple['kind']} fingers", cols=7)
+
+
+def run_ablations(outcomes: dict, kinds: list[str], inputs, fast, workers: int,
+                  ablations=None) -> list[dict]:
+    """Each of ``ablations`` (default ABLATIONS) on its side; prints a table and returns one dict
+    per row, the first the unchanged protocols: side, label,
+    changes, agreement (the changed side against the other side's unchanged outcomes, per trial),
+    moved (share of the changed side's own trials that the change flipped), rates per kind
+    (the changed side and the other, unchanged one), the changed side's outcomes."""
+    import dataclasses
+
+    objs, lefts, rights, obj_hulls, lh, rh = inputs
+    shown = [k for k in ("imprint", "wsg50-fmf", "cut", "perturbed") if k in kinds]
+    rows = [dict(side="-", label="none (fast and the PyBullet peer as they are)", changes={},
+                 agreement=_agreement(outcomes["fast"], outcomes["pybullet"]), moved=0.0,
+                 rates={k: {s: _kind_rates(outcomes[s], kinds, k) for s in ("fast", "pybullet")}
+                        for k in shown})]
+    print(f"\nablations, one difference at a time ({len(kinds)} triples):", flush=True)
+    for side, label, changes in ABLATIONS if ablations is None else ablations:
+        t = time.perf_counter()
+        if side == "ours":
+            cfg = fast.replace(sim=dataclasses.replace(fast.sim, **changes))
+            changed = sim.evaluate(objs, lefts, rights, cfg=cfg, threads=workers,
+                                   object_hulls=obj_hulls, progress=False)
+            own, other = outcomes["fast"], outcomes["pybullet"]
+        else:
+            changed, _ = run_peer(obj_hulls, lh, rh, fast, workers, changes)
+            own, other = outcomes["pybullet"], outcomes["fast"]
+        ours, theirs = (changed, other) if side == "ours" else (other, changed)
+        rows.append(dict(side=side, label=label, changes=changes,
+                         agreement=_agreement(changed, other), moved=1.0 - _agreement(changed, own),
+                         rates={k: {"fast": _kind_rates(ours, kinds, k),
+                                    "pybullet": _kind_rates(theirs, kinds, k)} for k in shown},
+                         outcomes=["".join(map(str, row)) for row in changed],
+                         seconds=time.perf_counter() - t))
+        print(f"  {side:8s} {label[:60]:60s} {time.perf_counter() - t:5.0f} s", flush=True)
+    print("\n| side | change | agreement | own trials moved | "
+          + " | ".join(f"{k}: ours grasp/S/R | {k}: PyBullet" for k in shown) + " |")
+    print("|---" * (4 + 2 * len(shown)) + "|")
+    for r in rows:
+        cells = []
+        for k in shown:
+            for s in ("fast", "pybullet"):
+                v = r["rates"][k][s]
+                cells.append(f"{v['grasp']:.3f} / {v['S']:.2f} / {v['R']:.2f}")
+        print(f"| {r['side']} | {r['label']} | {100 * r['agreement']:.1f}% | "
+              f"{100 * r['moved']:.1f}% | " + " | ".join(cells) + " |")
+    return rows
+
+
+def _agreement(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.mean(np.asarray(a) == np.asarray(b)))
+
+
+def _kind_rates(outcomes: np.ndarray, kinds: list[str], kind: str) -> dict:
+    return _rates(np.asarray(outcomes)[np.array(kinds) == kind].astype(bool))
 
 
 def main(argv=None) -> int:
@@ -113,6 +228,13 @@ def main(argv=None) -> int:
     p.add_argument("--workers", type=int, default=os.cpu_count(),
                    help="MuJoCo threads, coacd and PyBullet processes (default: all cores)")
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--render", type=Path, default=None,
+                   help="draw the first differing triple (imprint fingers where one differs) as "
+                        "both simulators ran it, one strip each, to this PNG")
+    p.add_argument("--ablations", nargs="*", default=None, metavar="WORD",
+                   help="then each difference in ABLATIONS on its own side, judged against the "
+                        "other side's unchanged outcomes (a table; ablations in --json); with "
+                        "words, only the ablations whose label contains one of them")
     args = p.parse_args(argv)
     if args.n_objects < 1 or args.workers < 1:
         p.error("--n-objects and --workers must be >= 1")
@@ -190,8 +312,19 @@ def main(argv=None) -> int:
     for i in differing[:SHOWN_DIFFERING]:
         print(f"  {i:4d} {triples[i]['name']:28s} {kinds[i]:10s} fast {_vector(outcomes['fast'][i])}"
               f"  pybullet {_vector(outcomes['pybullet'][i])}")
+    if args.render and differing:
+        i = next((i for i in differing if kinds[i] == "imprint"), differing[0])
+        render_both(triples[i], obj_hulls[i], lh[i], rh[i], presets["fast"], args.render)
+        print(f"drew triple {i} ({triples[i]['name']}, {kinds[i]}) from both simulators to "
+              f"{args.render}")
+    ablations = None
+    if args.ablations is not None:
+        chosen = [a for a in ABLATIONS
+                  if not args.ablations or any(w in a[1] for w in args.ablations)]
+        ablations = run_ablations(outcomes, kinds, (objs, lefts, rights, obj_hulls, lh, rh),
+                                  presets["fast"], args.workers, chosen)
     if args.json:
-        args.json.write_text(json.dumps(dict(
+        args.json.write_text(json.dumps(dict(ablations=ablations,
             n=len(triples), kinds=args.kinds, objects=str(args.objects or "builtin"),
             config=args.config, agreement=stats, rates=rates, seconds=seconds,
             triples=[dict(object=tr["name"], kind=tr["kind"]) for tr in triples],

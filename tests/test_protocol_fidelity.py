@@ -10,11 +10,24 @@ pytest.importorskip("pybullet")
 fidelity = importlib.import_module("benchmarks.protocol_fidelity")
 
 
-def test_fidelity_report_on_one_object(tmp_path, capsys):
-    out = tmp_path / "fidelity.json"
+def test_fidelity_report_on_one_object(tmp_path, capsys, monkeypatch):
+    out, png = tmp_path / "fidelity.json", tmp_path / "both.png"
+    # one ablation a side: a friction that lets our flat pads lift the bottle, and the original's
+    # self-collision, which leaves the peer's imprint grasp of it as it was
+    monkeypatch.setattr(fidelity, "ABLATIONS", (
+        ("ours", "friction 1.0", dict(finger_friction=1.0)),
+        ("pybullet", "self-collision", dict(self_collision=True))))
     assert fidelity.main(["--n-objects", "1", "--config", "tiny", "--kinds", "imprint", "flat",
-                          "--workers", "2", "--json", str(out)]) == 0
+                          "--workers", "2", "--json", str(out), "--render", str(png),
+                          "--ablations"]) == 0
     res = json.loads(out.read_text())
+    assert png.exists() == bool(res["differing"])
+    base, ours, theirs = res["ablations"]
+    assert base["moved"] == 0.0 and [ours["side"], theirs["side"]] == ["ours", "pybullet"]
+    assert ours["rates"]["flat"]["fast"]["grasp"] == 1.0  # mu 1.0: flat pads hold 2 N > 0.49 N
+    assert ours["rates"]["flat"]["pybullet"]["grasp"] == 0.0  # the other side as it was
+    assert ours["moved"] > 0
+    assert theirs["rates"]["imprint"]["pybullet"]["grasp"] == 1.0
     assert res["n"] == 2 and res["kinds"] == ["imprint", "flat"]
     assert set(res["agreement"]) == {"fast", "reference"}
     for sim in ("fast", "reference", "pybullet"):
