@@ -48,7 +48,8 @@ def load_models(path: Path, cfg):
     models = []
     for v, c, left, right in zip(data["ohv"], data["ohc"], data["left"], data["right"]):
         models.append(build_model(Hulls(v, c), finger_hulls(left, cfg), finger_hulls(right, cfg), cfg,
-                                  pad_collides=True, max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS))
+                                  pad_collides=True, max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
+                                  max_contact_points=mjx_batch.MAX_CONTACT_POINTS))
     return models
 
 

@@ -98,7 +98,7 @@ def make_triples(tsdfs: np.ndarray, names: list[str], kinds, seed: int, cfg) -> 
 # switches there) or, where no such field exists, SimConfig fields the peer reads.
 ABLATIONS: tuple[tuple[str, str, dict], ...] = (
     ("ours", "lift as hard as the original's (lift_time 0.25 s: 11 m/s^2 peak)", dict(lift_time=0.25)),
-    ("ours", "fingers collide with each other and the floor", dict(finger_collisions=True)),
+    ("ours", "fingers pass through each other (finger_collisions off)", dict(finger_collisions=False)),
     ("ours", "push through the world origin (the original's call)", dict(push_point="origin")),
     ("ours", "jaws close from 3 cm open (open_margin 0.03)", dict(open_margin=0.03)),
     ("ours", "pyramidal friction cone", dict(cone="pyramidal")),
@@ -172,7 +172,7 @@ def run_ablations(outcomes: dict, kinds: list[str], inputs, fast, workers: int,
     import dataclasses
 
     objs, lefts, rights, obj_hulls, lh, rh = inputs
-    shown = [k for k in ("imprint", "wsg50-fmf", "cut", "perturbed") if k in kinds]
+    shown = [k for k in FINGER_KINDS if k in kinds]
     rows = [dict(side="-", label="none (fast and the PyBullet peer as they are)", changes={},
                  agreement=_agreement(outcomes["fast"], outcomes["pybullet"]), moved=0.0,
                  rates={k: {s: _kind_rates(outcomes[s], kinds, k) for s in ("fast", "pybullet")}

@@ -85,9 +85,12 @@ class SimConfig:
     lift_kp: float = 2000.0
     lift_damping: float = 80.0
     open_margin: float = 0.004  # m, clearance between a finger and the object at t = 0
-    # Fingers meet the object only: they pass through each other and the floor (the original's
-    # gripper had self-collision on; benchmarks/protocol_fidelity.py --ablations measures both).
-    finger_collisions: bool = False
+    # The two jaws' fingers meet each other, as real fingers and the original's gripper
+    # (self-collision on) do, so no design can close by passing through its partner.  On 320
+    # builtin triples it changes no outcome and no time (RESULTS.md "The decision").  Fingers
+    # never meet the floor: their cube's bottom voxel lies 1.5 mm below it (GeometryConfig.
+    # rest_offset), and a floor pressing on them would drag the closing jaws.
+    finger_collisions: bool = True
     # --- phases (s) ---
     settle_time: float = 0.2
     close_time: float = 0.4

@@ -17,7 +17,8 @@ def sphere_models(sphere_tsdf, tiny_cfg):
     models = []
     for left, right in (imprint_fingers(sphere_tsdf), wsg50_fingers()):
         models.append(build_model(hulls, finger_hulls(left, tiny_cfg), finger_hulls(right, tiny_cfg),
-                                  tiny_cfg, pad_collides=True, max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS))
+                                  tiny_cfg, pad_collides=True, max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
+                                  max_contact_points=mjx_batch.MAX_CONTACT_POINTS))
     return models
 
 

@@ -259,22 +259,22 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
     assert info.steps[0] == info.steps[2] > 0
 
 
-def test_finger_collisions_let_fingers_that_meet_outside_the_object_hold_each_other_apart(tiny):
-    """Imprint fingers of a 1 cm slab meet each other beside it: by default they pass through
-    each other and both press on the slab; with SimConfig.finger_collisions (the original's
-    self-collision) they stop where they meet, further apart."""
-    slab = box_tsdf((-0.005, -0.025, 0.0), (0.005, 0.025, 0.05), tiny)
-    left, right = imprint_fingers(slab, tiny)
-    obj = pad_hulls([tsdf_to_mesh(slab, tiny.geometry).vertices], tiny.geometry.object_hulls,
-                    tiny.geometry.hull_vertices)
+def test_fingers_that_close_on_nothing_stop_against_each_other(sphere_hulls, flat_tips, tiny):
+    """The object 5 cm beside the jaws' path: flat tips closing from fully open meet nothing
+    but each other.  With SimConfig.finger_collisions (the default, the original's
+    self-collision) they stop there, a tip's depth from the centre plane; without, they pass
+    through each other to the jaws' joint limit."""
     openings = {}
     for collide in (False, True):
         cfg = tiny.replace(sim=dataclasses.replace(tiny.sim, finger_collisions=collide))
-        model = build_model(obj, finger_hulls(left, tiny), finger_hulls(right, tiny), cfg)
+        model = build_model(sphere_hulls, *flat_tips, cfg, object_xy=(0.0, 0.05))
         runner = GraspRunner(model, cfg)
-        runner.grasp(0.0)
-        openings[collide] = runner.data.qpos[runner.ids.jaw_qpos].sum()
-    assert openings[True] > openings[False] + 0.002, openings
+        runner.place(0.0)  # fully open; no approach: it would set the tips into each other
+        runner.data.ctrl[runner.ids.grip_act] = runner.ids.jaw_range[:, 0]
+        runner.advance(cfg.sim.steps(1.6))  # 0.1 m/s: 11 cm open to the -3 cm limit and rest
+        openings[collide] = runner.data.qpos[runner.ids.jaw_qpos].copy()
+    assert (openings[False] < 0.0).all(), openings  # mount planes past the centre plane
+    assert (openings[True] > 0.01).all(), openings  # 3 cm tips: they meet ~3 cm from it
 
 
 def test_a_push_through_the_world_origin_also_turns_the_object(sphere_tsdf, sphere_hulls, tiny):

@@ -12,8 +12,11 @@ Two things make mesh grasps tractable in MJX:
   of minutes to compile).  Here every piece's convex data is padded to one size
   (``ConvexSizes``) and the mesh-mesh pairs form a single group whose collider gathers each
   pair's data by geom, so one vmapped function serves them all; MJX's ``max_geom_pairs`` broad
-  phase keeps only the closest pairs each step.  This relies on MJX internals of mujoco-mjx
-  3.17 (pinned): ``collision_driver._geom_groups`` and ``_COLLISION_FUNC``.
+  phase keeps only the closest pairs each step.  The fingers' pairs with each other
+  (``SimConfig.finger_collisions``) are a second such group, with a cap of their own, and the
+  floor's pairs with every piece a third; ``max_contact_points`` keeps the solver's problem at
+  the deepest 96 contacts.  This relies on MJX internals of mujoco-mjx 3.17 (pinned):
+  ``collision_driver._geom_groups`` and ``_COLLISION_FUNC``.
 * **Convex data computed here, not by MJX.**  ``mjx.put_model`` derives it with trimesh, about
   0.5 s per model; ``convex_data`` takes ~1 ms per piece from the hull's vertices.
 
@@ -37,6 +40,7 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from f2f_jax.config import Config
+from f2f_jax.sim.scene import FINGER_BIT
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -44,7 +48,7 @@ with warnings.catch_warnings():
     from mujoco.mjx._src import collision_convex, collision_driver
     from mujoco.mjx._src import math as mjx_math
     from mujoco.mjx._src import mesh as mjx_mesh
-    from mujoco.mjx._src.collision_types import ConvexInfo, FunctionKey
+    from mujoco.mjx._src.collision_types import ConvexInfo, FunctionKey, GeomInfo
     from mujoco.mjx._src.types import ConvexMesh, GeomType
 
 # Model fields that differ between candidates of one layout (found by comparing models of very
@@ -59,7 +63,15 @@ MAX_POLYGON = 12  # vertices kept per merged coplanar face (MJX allows 20)
 # pressing an object touches it with a few pieces; 16 keeps every pair that can touch in the
 # grasps we looked at while bounding the narrow phase's cost.
 MAX_GEOM_PAIRS = 16
-_MERGED = (-1, -1)  # data_ids of the single mesh-mesh collision group
+# Contacts the solver sees per step, the deepest first.  The fingers' pairs with each other
+# (16 more pairs, 64 contact slots) would otherwise grow the constraint problem by two thirds;
+# 96 is over twice the 17-40 contacts a held grasp has active (plain MuJoCo, RESULTS.md).
+MAX_CONTACT_POINTS = 96
+# data_ids of the merged collision groups: every object-finger (and object-object) mesh pair,
+# every finger-finger mesh pair (its own group, so its broad-phase cap does not crowd out the
+# pairs that hold the object), and every plane-mesh pair (the floor: no broad phase)
+_MERGED = (-1, -1)
+_MERGED_FINGERS = (-2, -2)
 
 
 # --------------------------------------------------------------------------------------------
@@ -159,37 +171,61 @@ def model_convex(m: mujoco.MjModel, sizes: ConvexSizes) -> list[ConvexMesh]:
 def _merged_groups(m):
     groups = _STOCK_GEOM_GROUPS(m)
     merged: dict = {}
+    finger = (np.asarray(m.geom_contype) & FINGER_BIT) != 0  # object pieces carry no contype
     for key, pairs in groups.items():
         if key.types == (GeomType.MESH, GeomType.MESH):
+            for pair in pairs:
+                ids = _MERGED_FINGERS if finger[pair[0]] and finger[pair[1]] else _MERGED
+                merged.setdefault(FunctionKey(key.types, ids, key.condim), []).append(pair)
+            continue
+        if key.types == (GeomType.PLANE, GeomType.MESH):
             key = FunctionKey(key.types, _MERGED, key.condim)
         merged.setdefault(key, []).extend(pairs)
     return merged
 
 
+def _convex_info(m, d, g):
+    """ConvexInfo of geoms ``g`` [P], each with its own mesh's padded convex data."""
+    stacked = jax.tree_util.tree_map(lambda *x: jp.stack(x), *m._impl.mesh_convex)
+    c = jax.tree_util.tree_map(lambda x: x[jp.asarray(m.geom_dataid)[g]], stacked)
+    return ConvexInfo(d.geom_xpos[g], d.geom_xmat[g], m.geom_size[g], c.vert, c.face,
+                      c.face_normal, c.edge, c.edge_face_normal)
+
+
 def _mesh_mesh(m, d, key, geom):
     """Contacts of many mesh-mesh pairs at once; each pair's convex data gathered by geom."""
-    if key.data_ids != _MERGED:
+    if key.data_ids not in (_MERGED, _MERGED_FINGERS):
         return _STOCK_CONVEX(m, d, key, geom)
-    stacked = jax.tree_util.tree_map(lambda *x: jp.stack(x), *m._impl.mesh_convex)
-    dataid = jp.asarray(m.geom_dataid)
-
-    def info(g):
-        c = jax.tree_util.tree_map(lambda x: x[dataid[g]], stacked)
-        return ConvexInfo(d.geom_xpos[g], d.geom_xmat[g], m.geom_size[g], c.vert, c.face,
-                          c.face_normal, c.edge, c.edge_face_normal)
 
     def pair(c1, c2):
         dist, pos, n = collision_convex._convex_convex(c1, c2)
         return dist, pos, jax.vmap(mjx_math.make_frame)(n)
 
     g1, g2 = geom.T
-    dist, pos, frame = jax.vmap(pair)(info(g1), info(g2))
+    dist, pos, frame = jax.vmap(pair)(_convex_info(m, d, g1), _convex_info(m, d, g2))
+    return dist.reshape(-1), pos.reshape(-1, 3), frame.reshape(-1, 3, 3)
+
+
+def _plane_mesh(m, d, key, geom):
+    """Contacts of the floor with many mesh geoms at once (one group, not one per mesh)."""
+    if key.data_ids != _MERGED:
+        return _STOCK_PLANE_MESH(m, d, key, geom)
+    g1, g2 = geom.T
+    plane = GeomInfo(d.geom_xpos[g1], d.geom_xmat[g1], m.geom_size[g1])
+    dist, pos, frame = jax.vmap(_PLANE_CONVEX)(plane, _convex_info(m, d, g2))
     return dist.reshape(-1), pos.reshape(-1, 3), frame.reshape(-1, 3, 3)
 
 
 _mesh_mesh.ncon = 4
+_plane_mesh.ncon = 4
 _STOCK_GEOM_GROUPS = collision_driver._geom_groups
 _STOCK_CONVEX = collision_driver._COLLISION_FUNC[(GeomType.MESH, GeomType.MESH)]
+_STOCK_PLANE_MESH = collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.MESH)]
+# The stock entry wraps MJX's plane-convex function for one shared mesh; the function itself is
+# the wrapper's closure (mujoco-mjx 3.17), vmapped above over per-geom convex data.
+_PLANE_CONVEX = next(c.cell_contents for c in _STOCK_PLANE_MESH.__closure__
+                     if getattr(c.cell_contents, "__name__", "") == "plane_convex")
+assert _STOCK_PLANE_MESH.ncon == _plane_mesh.ncon
 
 
 class merged_mesh_collisions:
@@ -199,11 +235,13 @@ class merged_mesh_collisions:
     def __enter__(self):
         collision_driver._geom_groups = _merged_groups
         collision_driver._COLLISION_FUNC[(GeomType.MESH, GeomType.MESH)] = _mesh_mesh
+        collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.MESH)] = _plane_mesh
         return self
 
     def __exit__(self, *exc):
         collision_driver._geom_groups = _STOCK_GEOM_GROUPS
         collision_driver._COLLISION_FUNC[(GeomType.MESH, GeomType.MESH)] = _STOCK_CONVEX
+        collision_driver._COLLISION_FUNC[(GeomType.PLANE, GeomType.MESH)] = _STOCK_PLANE_MESH
         return False
 
 
@@ -252,10 +290,9 @@ class MjxGraspSimulator:
         from f2f_jax.sim.protocol import lift_targets
         from f2f_jax.sim.scene import scene_ids
 
-        if cfg.sim.push_point != "com" or cfg.sim.finger_collisions:
-            raise ValueError("the MJX backend pushes at the centre of mass and collides fingers "
-                             "with the object only; push_point='origin' and finger_collisions "
-                             "are plain MuJoCo's (backend='cpu')")
+        if cfg.sim.push_point != "com":
+            raise ValueError("the MJX backend pushes at the centre of mass; push_point='origin' "
+                             "is plain MuJoCo's (backend='mujoco')")
         self.cfg = cfg
         self.sizes = ConvexSizes.for_vertices(cfg.geometry.hull_vertices)
         self.ids = scene_ids(template)
@@ -558,7 +595,8 @@ def simulator_for(model: mujoco.MjModel, cfg: Config) -> MjxGraspSimulator:
 
 def evaluate_models(models: list[mujoco.MjModel], cfg: Config, *, chunk: int | None = None) -> dict:
     """The 11 trials of compiled candidate models (``build_model(..., pad_collides=True,
-    max_geom_pairs=MAX_GEOM_PAIRS)``, one layout) in MJX.  See MjxGraspSimulator.run."""
+    max_geom_pairs=MAX_GEOM_PAIRS, max_contact_points=MAX_CONTACT_POINTS)``, one layout) in MJX.
+    See MjxGraspSimulator.run."""
     sim = simulator_for(models[0], cfg)
     batch = sim.batch(models)
     if chunk is None:

@@ -279,7 +279,8 @@ def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir
                 raise F2FError(f"object hulls: {hulls}")
             models.append(build_model(hulls, finger_hulls(lefts[i], cfg),
                                       finger_hulls(rights[i], cfg), cfg, pad_collides=True,
-                                      max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS))
+                                      max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
+                                      max_contact_points=mjx_batch.MAX_CONTACT_POINTS))
             index.append(i)
         except (F2FError, ValueError) as exc:
             errors[int(i)] = f"{type(exc).__name__}: {exc}"

@@ -29,8 +29,8 @@ ASSET_DIR = Path(__file__).resolve().parents[1] / "assets" / "wsg50"
 GRIPPER_XML = ASSET_DIR / "wsg50.xml"
 
 # Collision bits (see the XML's header): the floor and the fingers each carry one bit, the object
-# accepts both; nothing else collides.  Finger-finger and finger-floor pairs never reach the
-# narrow phase, which is most of the saving for mesh-mesh collisions.
+# accepts both; with SimConfig.finger_collisions (the default) the fingers accept the finger
+# bit too, so they also meet the other jaw's fingers; nothing else collides.
 FLOOR_BIT = 1
 FINGER_BIT = 2
 OBJECT_AFFINITY = FLOOR_BIT | FINGER_BIT
@@ -207,7 +207,8 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
                 cfg: Config | None = None, *, object_yaw: float = 0.0,
                 object_mass: float | None = None, friction: float | None = None,
                 object_xy=(0.0, 0.0), flat_tips: bool = False,
-                pad_collides: bool = False, max_geom_pairs: int | None = None) -> mujoco.MjModel:
+                pad_collides: bool = False, max_geom_pairs: int | None = None,
+                max_contact_points: int | None = None) -> mujoco.MjModel:
     """Compile the grasp scene for one (object, left finger, right finger) triple.
 
     object_hulls: Hulls [K_o, V, 3], metres, the object volume's local frame (= world frame of the
@@ -227,6 +228,8 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
 
     max_geom_pairs: MJX's broad-phase cap on pairs per collision function (a numeric read by
         MJX; plain MuJoCo ignores it).
+    max_contact_points: MJX's cap on the contacts passed to the solver (the deepest first; a
+        numeric read by MJX, ignored by plain MuJoCo).
 
     The object's lowest point touches the floor (z = 0); the jaws start at their upper joint
     limit: ``JawOpener`` moves them in so nothing touches.  Raises DecompositionError
@@ -263,9 +266,10 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
 
     # --- fingers: pieces on the jaws, rotated from (u, v, w) into the jaw frame --------------
     finger_geom = dict(condim=s.condim, priority=1, friction=[mu, 0.005, 0.0001], group=2)
-    # with SimConfig.finger_collisions the fingers also meet the floor and the other jaw's
-    # fingers (pieces on one jaw share a body, which MuJoCo never collides with itself)
-    finger_affinity = FLOOR_BIT | FINGER_BIT if s.finger_collisions else 0
+    # with SimConfig.finger_collisions the fingers also meet the other jaw's fingers (pieces on
+    # one jaw share a body, which MuJoCo never collides with itself).  Not the floor: a finger
+    # lies in its cube, a voxel above the floor, and the gripper never goes lower.
+    finger_affinity = FINGER_BIT if s.finger_collisions else 0
     for side, hulls in zip(SIDES, (left_hulls, right_hulls)):
         pose = finger_pose(side, 0.0, cfg)
         rot = pose[:3, :3]
@@ -292,6 +296,8 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
 
     if max_geom_pairs is not None:
         spec.add_numeric(name="max_geom_pairs", data=[float(max_geom_pairs)])
+    if max_contact_points is not None:
+        spec.add_numeric(name="max_contact_points", data=[float(max_contact_points)])
     try:
         return spec.compile()
     except ValueError as exc:
