@@ -249,7 +249,7 @@ class GraspRunner:
         force = s.push_force * np.asarray(direction, np.float64)
         d.xfrc_applied[ids.object_body, :3] = force
         if s.push_point == "origin":  # the same force through the world origin: add its moment
-            # about the centre of mass (taken where the push starts; it moves < 1 mm in 83 ms)
+            # about the centre of mass, taken where the push starts
             d.xfrc_applied[ids.object_body, 3:] = np.cross(-d.xipos[ids.object_body], force)
         elif s.push_point != "com":
             raise ValueError(f"SimConfig.push_point {s.push_point!r}: 'com' or 'origin'")

@@ -267,8 +267,9 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
     # --- fingers: pieces on the jaws, rotated from (u, v, w) into the jaw frame --------------
     finger_geom = dict(condim=s.condim, priority=1, friction=[mu, 0.005, 0.0001], group=2)
     # with SimConfig.finger_collisions the fingers also meet the other jaw's fingers (pieces on
-    # one jaw share a body, which MuJoCo never collides with itself).  Not the floor: a finger
-    # lies in its cube, a voxel above the floor, and the gripper never goes lower.
+    # one jaw share a body, which MuJoCo never collides with itself).  Not the floor: the
+    # fingers' cube reaches a voxel below it (GeometryConfig.rest_offset, as the object's volume
+    # does), and a floor pressing on that layer would drag the closing jaws.
     finger_affinity = FINGER_BIT if s.finger_collisions else 0
     for side, hulls in zip(SIDES, (left_hulls, right_hulls)):
         pose = finger_pose(side, 0.0, cfg)
@@ -284,8 +285,8 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
                 _hull_volume(piece, f"{side} finger hulls piece {k}")
             bits = FINGER_BIT if (real or pad_collides) else 0
             _add_piece(spec, jaw, f"{side}_{k}", (piece if real else pad) @ rot.T, contype=bits,
-                       conaffinity=finger_affinity if bits else 0, rgba=[0.25, 0.45, 0.8, 1.0] if real else [0, 0, 0, 0],
-                       **finger_geom)
+                       conaffinity=finger_affinity if bits else 0,
+                       rgba=[0.25, 0.45, 0.8, 1.0] if real else [0, 0, 0, 0], **finger_geom)
         if flat_tips:
             tip = spec.geom(f"{side}_tip")
             tip.contype = FINGER_BIT
