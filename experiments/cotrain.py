@@ -60,7 +60,7 @@ def main(argv=None) -> int:
                    help="builtin (procedural, no download) | pybullet | a directory of meshes")
     p.add_argument("--n-objects", type=int, default=None, help="built-in objects to make (default: config)")
     p.add_argument("--run-dir", default="runs/cotrain")
-    p.add_argument("--backend", choices=["mujoco", "mjx"], default=None,
+    p.add_argument("--backend", choices=["mujoco", "mjx", "warp"], default=None,
                    help="simulator (default: mjx on an accelerator, mujoco on a CPU)")
     p.add_argument("--objectives", choices=["GS", "GS+R", "GS+S", "full"], default=None,
                    help="fitness outputs the generator maximises (Table 1 ablations)")
@@ -128,8 +128,8 @@ def main(argv=None) -> int:
 
     from f2f_jax.train.cotrain import CoTrainRun
 
-    if args.executor == "ray" and args.backend == "mjx":
-        return fail("--executor ray distributes the mujoco backend; drop --backend mjx")
+    if args.executor == "ray" and args.backend not in (None, "mujoco"):
+        return fail(f"--executor ray distributes the mujoco backend; drop --backend {args.backend}")
     backend = "mujoco" if args.executor == "ray" else args.backend or _default_backend()
     try:
         executor = ray_executor.executor_from_cli(args)

@@ -123,7 +123,7 @@ def main(argv=None) -> int:
     p.add_argument("--fresh", type=int, default=None, metavar="N",
                    help="with --run-dir: add N new built-in objects (drawn with --seed, which must "
                         "differ from the run's) to its held-out ones")
-    p.add_argument("--backend", choices=["mujoco", "mjx"], default="mujoco")
+    p.add_argument("--backend", choices=["mujoco", "mjx", "warp"], default="mujoco")
     p.add_argument("--sim-preset", default=None, choices=["fast", "reference"],
                    help="simulation preset (config.SIM_PRESETS; default: the run's config's)")
     p.add_argument("--randemb-steps", type=int, default=200,
@@ -169,7 +169,7 @@ def main(argv=None) -> int:
             return _fail(f"--extra {item!r}: no such directory {path}")
         extras.append((name.strip(), Path(path).expanduser()))
     if args.executor == "ray" and args.backend != "mujoco":
-        return _fail("--executor ray distributes the mujoco backend; drop --backend mjx")
+        return _fail(f"--executor ray distributes the mujoco backend; drop --backend {args.backend}")
     try:
         ray_executor.executor_from_cli(args)
     except F2FError as exc:  # the extra missing, or no cluster at --ray-address

@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=None,
                    help="objects per stored chunk (default 8; with --executor ray, 2 per cluster "
                         "CPU, at least 8, so every CPU has work)")
-    p.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx"])
+    p.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx", "warp"])
     ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
     if args.n <= 0:

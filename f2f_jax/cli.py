@@ -45,7 +45,7 @@ def _design_parser() -> argparse.ArgumentParser:
                    help="also rank the object's imprint pair and two variants of it, so a verified "
                         "pick never passes fewer trials than imprints (default: with --verify)")
     p.add_argument("--seed", type=int, default=0, help="seed of the candidates' latent noise")
-    p.add_argument("--backend", choices=("mujoco", "mjx"), default="mujoco",
+    p.add_argument("--backend", choices=("mujoco", "mjx", "warp"), default="mujoco",
                    help="simulator for --verify (default mujoco, on CPU threads)")
     # as sim.ray_executor.add_cli_arguments, which would import the simulator before the checks
     p.add_argument("--executor", default="threads", choices=["threads", "ray"],

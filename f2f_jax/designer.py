@@ -53,7 +53,7 @@ LATENT_NOISE = 0.2
 # Candidates (or objects) per vectorised chunk inside one jitted call: bounds activation memory
 # (default config: ~1 GB per 256 fitness triples on a CPU) without a Python loop.
 CHUNK = 256
-BACKENDS = ("mujoco", "mjx")
+BACKENDS = ("mujoco", "mjx", "warp")
 # The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
 # Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
 IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (

@@ -604,7 +604,7 @@ def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     Columns (percent): grasp, S1..S4, S avg (mean of S1..S4), R-30..R+30, R avg (mean of the six).
     Rates are absolute over all objects, not conditional on a successful grasp (see the module
     docstring); infeasible designs score 0 and ``Table.feasible`` gives each row's feasible share.
-    object_hulls / cache_dir / executor: as in ``sim.evaluate``; backend: "mujoco" or "mjx".
+    object_hulls / cache_dir / executor: as in ``sim.evaluate``; backend: "mujoco", "mjx" or "warp".
     """
     from f2f_jax.config import default
 
@@ -651,7 +651,7 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     +-[0.1, 2] cm (x: the closing direction; ``position_offsets``, seeded by ``seed``).
 
     The fingers are designed once for the nominal objects (the designer does not see the
-    perturbation).  Shifts exist on the "mujoco" backend only: with backend="mjx" those
+    perturbation).  Shifts exist on the "mujoco" backend only: with a batched backend those
     conditions run on "mujoco" (said in the notes).  ``Table.outcomes[name]`` is [C, N, 11];
     ``feasible`` as in ``table1``; executor: as in ``sim.evaluate``.
     """

@@ -10,6 +10,7 @@ same initial state, so both executors give the same outcomes bit for bit.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import time
@@ -32,6 +33,7 @@ log = logging.getLogger(__name__)
 # Above this many candidates a progress bar is shown when progress=None.
 _AUTO_PROGRESS = 32
 EXECUTORS = ("threads", "ray")
+BACKENDS = ("mujoco", "mjx", "warp")
 
 
 @dataclass
@@ -114,8 +116,10 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
 
     objects, lefts, rights: [N, 40, 40, 40] float32 TSDF arrays (or length-N sequences of
         [40, 40, 40]), negative inside, in the frames of config.py.
-    backend: "mujoco" (this module: threads over candidates, the CPU default) or "mjx" (all
-        candidates batched in MJX, ``sim.mjx_batch``; pays off on an accelerator).
+    backend: "mujoco" (this module: threads over candidates, the CPU default), "mjx" (all
+        candidates batched in MJX, ``sim.mjx_batch``; any JAX device) or "warp" (every trial a
+        MuJoCo Warp world with its own geometry, ``sim.warp_batch``, on every local GPU, else
+        warp's slow CPU device; needs the ``warp`` extra).
     executor: where the "mujoco" backend's candidates run: "threads" (this process, ``threads``
         worker threads) or "ray" (Ray tasks on a local or remote cluster, ``sim.ray_executor``:
         needs the ``ray`` extra; same outcomes bit for bit).
@@ -131,12 +135,13 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         cached on disk in ``cache_dir``, or tiles in ~0.15 s), once per distinct object.
     return_info: also return an EvaluationInfo.
     preset: a simulation preset of ``config.SIM_PRESETS`` applied to cfg ("fast", the default
-        of every config, or "reference"); None keeps cfg as it is.  The "mjx" backend runs every
-        phase to its full length whatever the preset (its batch steps all worlds in lock-step).
+        of every config, or "reference"); None keeps cfg as it is.  The "mjx" and "warp"
+        backends run every phase to its full length whatever the preset (their batches step all
+        worlds in lock-step).
     object_xy: None (the object at the grasp location), one [2] or per-candidate [N, 2] float
         offsets (x, y) in metres that shift the object on the floor before every trial (x is
         the closing direction); the robustness grasps turn it about its shifted centre.  Only
-        the "mujoco" backend; "mjx" raises NotImplementedError.
+        the "mujoco" backend; "mjx" and "warp" raise NotImplementedError.
 
     Returns outcomes [N, 11] uint8 in ``TRIAL_NAMES`` order (and the info).  A candidate with an
     infeasible finger scores zeros without simulation; one whose hulls or model cannot be built
@@ -144,17 +149,19 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     Raises VolumeError (naming the index) for volumes of the wrong shape, NaN values or an empty
     object, ValueError for inputs of different lengths.
     """
-    if backend not in ("mujoco", "mjx"):
-        raise ValueError(f"unknown backend {backend!r}; choose 'mujoco' or 'mjx'")
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
     if executor not in EXECUTORS:
         raise ValueError(f"unknown executor {executor!r}; choose one of {EXECUTORS}")
     if executor == "ray" and backend != "mujoco":
-        raise ValueError("executor='ray' distributes the 'mujoco' backend; the 'mjx' backend "
-                         "batches every candidate on one accelerator")
+        raise ValueError(f"executor='ray' distributes the 'mujoco' backend; the {backend!r} "
+                         "backend batches every candidate on this machine's accelerators")
     if executor == "ray":
         from f2f_jax.sim import ray_executor
 
         ray_executor.require_ray()  # before any work: a missing extra is the first thing said
+    if backend == "warp":  # before any work: importing it raises MissingExtraError without warp
+        importlib.import_module("f2f_jax.sim.warp_batch")
     cfg = cfg or Config()
     if preset is not None:
         cfg = with_sim_preset(cfg, preset)
@@ -169,9 +176,10 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
                          f"{n}, {len(lefts)} and {len(rights)}")
     objs = [check_tsdf(o, f"objects[{i}]", g) for i, o in enumerate(objs)]
     offsets = _object_offsets(object_xy, n)
-    if offsets is not None and backend == "mjx":
+    if offsets is not None and backend != "mujoco":
         raise NotImplementedError("evaluate(object_xy=...) is implemented for backend='mujoco' "
-                                  "only; the MJX batch places every object at the grasp location")
+                                  f"only; the {backend!r} batch places every object at the grasp "
+                                  "location")
     feasible = np.ones(n, bool)
     for name, fingers in (("lefts", lefts), ("rights", rights)):
         for i, f in enumerate(fingers):
@@ -187,9 +195,10 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         if len(hull_list) != n:
             raise ValueError(f"object_hulls: expected one Hulls per candidate ({n}), got "
                              f"{len(hull_list)}")
-    if backend == "mjx":
-        return _evaluate_mjx(objs, lefts, rights, feasible, cfg, object_hulls=object_hulls,
-                             cache_dir=cache_dir, return_info=return_info, progress=progress)
+    if backend != "mujoco":
+        return _evaluate_batched(backend, objs, lefts, rights, feasible, cfg,
+                                 object_hulls=object_hulls, cache_dir=cache_dir,
+                                 return_info=return_info, progress=progress)
     start = time.perf_counter()
     todo = np.nonzero(feasible)[0]
     results: list[TrialResult | None] = [None] * n
@@ -255,10 +264,19 @@ def _run_threads(objs, lefts, rights, todo, cfg, results, *, threads, show, hull
             results[i] = res
 
 
-def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir, return_info,
-                  progress):
-    """evaluate(..., backend="mjx"): models built here on the CPU, trials batched in MJX."""
-    from f2f_jax.sim import mjx_batch
+def _evaluate_batched(backend, objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir,
+                      return_info, progress):
+    """evaluate(..., backend="mjx" | "warp"): models built here on the CPU, one layout, trials
+    batched in MJX (``sim.mjx_batch``) or MuJoCo Warp (``sim.warp_batch``)."""
+    if backend == "mjx":
+        from f2f_jax.sim import mjx_batch as batched
+
+        caps = dict(max_geom_pairs=batched.MAX_GEOM_PAIRS,
+                    max_contact_points=batched.MAX_CONTACT_POINTS)
+    else:
+        from f2f_jax.sim import warp_batch as batched
+
+        caps = {}
 
     start = time.perf_counter()
     n, n_trials = len(objs), cfg.sim.n_trials
@@ -279,8 +297,7 @@ def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir
                 raise F2FError(f"object hulls: {hulls}")
             models.append(build_model(hulls, finger_hulls(lefts[i], cfg),
                                       finger_hulls(rights[i], cfg), cfg, pad_collides=True,
-                                      max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
-                                      max_contact_points=mjx_batch.MAX_CONTACT_POINTS))
+                                      **caps))
             index.append(i)
         except (F2FError, ValueError) as exc:
             errors[int(i)] = f"{type(exc).__name__}: {exc}"
@@ -289,7 +306,7 @@ def _evaluate_mjx(objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir
     steps = np.zeros(n, np.int64)
     unstable = np.zeros(n, np.int64)
     if models:
-        res = mjx_batch.evaluate_models(models, cfg)
+        res = batched.evaluate_models(models, cfg)
         outcomes[index] = res["outcome"]
         steps[index] = res["steps"]
         unstable[index] = res["unstable"]

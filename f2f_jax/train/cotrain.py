@@ -99,9 +99,9 @@ class CoTrainRun:
 
     cfg: the run's Config; config_name: its name, recorded (a run directory refuses a different
     config); objects: "builtin", "pybullet" or a mesh directory; backend: the simulator
-    ("mujoco" or "mjx"); executor: where it runs ("threads", or "ray": the pretraining dataset's
-    and every cycle's simulation in Ray tasks, ``sim.evaluate``); not part of the run: a run may
-    be resumed with either; progress: tqdm bars.
+    ("mujoco", "mjx" or "warp"); executor: where it runs ("threads", or "ray": the pretraining
+    dataset's and every cycle's simulation in Ray tasks, ``sim.evaluate``); not part of the
+    run: a run may be resumed with either; progress: tqdm bars.
     """
 
     def __init__(self, run_dir, cfg: Config, *, config_name: str = "custom", objects: str = "builtin",
