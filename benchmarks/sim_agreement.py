@@ -7,7 +7,9 @@
     python benchmarks/sim_agreement.py --n 64 --render 1                # draw a disagreement
 
 ``--presets JUDGED JUDGE`` (``config.SIM_PRESETS``; default ``fast reference``) names the preset
-under test and the one it is judged against.  Both simulate the same triples with plain MuJoCo,
+under test and the one it is judged against; ``--backends JUDGED JUDGE`` (default ``mujoco
+mujoco``) the simulator of each side, e.g. ``--presets reference reference --backends warp
+mujoco``: MuJoCo Warp against plain MuJoCo (labels become ``<preset>@<backend>``).  Both simulate the same triples with plain MuJoCo,
 each with its own object pieces (``geometry.pieces.object_pieces`` under that preset's
 ``object_method``: coacd cached on disk, or tiles made in this process) and its own protocol
 settings (early exits at rest or none).  Two equal presets give a determinism check:
@@ -226,6 +228,9 @@ def main(argv=None) -> int:
     p.add_argument("--presets", nargs=2, default=["fast", "reference"], choices=sorted(SIM_PRESETS),
                    metavar=("JUDGED", "JUDGE"),
                    help=f"the preset under test and its judge, of {sorted(SIM_PRESETS)} (default: fast reference)")
+    p.add_argument("--backends", nargs=2, default=["mujoco", "mujoco"], metavar=("JUDGED", "JUDGE"),
+                   choices=list(sim.BACKENDS),
+                   help="the simulator of each side, of mujoco, mjx, warp (default: mujoco mujoco)")
     p.add_argument("--config", default="default", choices=sorted(config.CONFIGS),
                    help="the config both presets are applied to (default: default)")
     p.add_argument("--seed", type=int, default=0, help="builtin objects, cut and perturbed fingers")
@@ -246,7 +251,11 @@ def main(argv=None) -> int:
             p.error(f"--objects {args.objects}: no mesh files in this directory")
     base = config.get(args.config)
     judged, judge = args.presets
-    labels = (judged, judge) if judged != judge else (f"{judged}-1", f"{judge}-2")
+    labels = tuple(name if backend == "mujoco" else f"{name}@{backend}"
+                   for name, backend in zip(args.presets, args.backends))
+    if labels[0] == labels[1]:
+        labels = (f"{labels[0]}-1", f"{labels[1]}-2")
+    backend_of = dict(zip(labels, args.backends))
 
     t = time.perf_counter()
     tsdfs, names = load_objects(args.n_objects, args.seed, args.objects, base.geometry)
@@ -287,11 +296,13 @@ def main(argv=None) -> int:
         t = time.perf_counter()
         outcomes[label], info = sim.evaluate(objs, lefts, rights, cfg=cfg, threads=args.threads,
                                              object_hulls=[by_object[tr["object"]] for tr in triples],
-                                             return_info=True, progress=True)
+                                             return_info=True, progress=True,
+                                             backend=backend_of[label])
         seconds[label] = time.perf_counter() - t
         ran = ~(info.infeasible | info.failed)
         steps[label] = float(info.steps[ran].mean()) if ran.any() else 0.0
-        print(f"{label}: {seconds[label]:.1f} s on {args.threads} threads, {steps[label]:.0f} steps per "
+        where = f"{args.threads} threads" if backend_of[label] == "mujoco" else backend_of[label]
+        print(f"{label}: {seconds[label]:.1f} s on {where}, {steps[label]:.0f} steps per "
               f"evaluation; {int(info.infeasible.sum())} infeasible, {int(info.failed.sum())} failed, "
               f"{int(info.unstable.sum())} unstable trials", flush=True)
 
@@ -328,7 +339,8 @@ def main(argv=None) -> int:
             print(f"rendering skipped: {type(exc).__name__}: {exc}")
 
     if args.json:
-        result = dict(n=len(triples), presets=list(labels), config=args.config, seed=args.seed, source=source,
+        result = dict(n=len(triples), presets=list(labels), backends=list(args.backends),
+                      config=args.config, seed=args.seed, source=source,
                       kinds=counts, **stats, object_meshing_s=meshing, steps_per_eval=steps,
                       seconds=seconds, threads=args.threads, differing=differing)
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -23,12 +23,23 @@ executor="ray")``, a local cluster over this machine's cores unless an address i
 same triples and pieces: its evaluations/s, ``ray_overhead`` = threads' evaluations/s / Ray's
 (1.0: none; compare on the same cores), whether the outcomes are identical, and the seconds to
 start Ray and its workers (timed apart: a long job pays them once).
+
+``--backends mujoco,mjx,warp`` adds the batched backends on the same triples: the imprint
+triples tiled up to each of ``--batch-sizes``, all 11 trials of every candidate
+(``mjx_batch`` / ``warp_batch`` run directly, so that compiling is timed apart), the reference
+phase lengths (both step every phase in full).  Per backend and batch size: full evaluations/s
+and environment steps/s (one world stepped once) after compiling, compile seconds, grasp
+success, and per-trial agreement with plain MuJoCo's reference outcomes of the same triples.
+MJX has one contact path (convex meshes, its separating-axis test): ``mjx_mesh_env_steps_per_s``
+is that path's figure, and ``mjx_env_steps_per_s`` the same until a cheaper contact geometry
+exists.  warp runs on every local GPU, else on warp's CPU device (slow: for checks only).
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib
 import json
 import os
 import platform
@@ -80,12 +91,24 @@ def main(argv=None) -> int:
                    help="objects whose pieces are timed uncached (coacd: 13-30 s each; default 2)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--task-size", type=int, default=None, help="--executor ray: candidates per task")
+    p.add_argument("--backends", default="mujoco",
+                   help="comma-separated, of mujoco,mjx,warp (default mujoco: plain MuJoCo only)")
+    p.add_argument("--batch-sizes", type=int, nargs="+", default=[64],
+                   help="candidates per batch for mjx and warp (default 64)")
     ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
     if args.n < 1 or args.per_core_n < 0 or args.threads < 1 or args.meshing_n < 1:
         p.error("--n, --threads and --meshing-n must be >= 1, --per-core-n >= 0")
     if args.objects is not None and not args.objects.is_dir():
         p.error(f"--objects {args.objects}: no such directory")
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    if not backends or set(backends) - {"mujoco", "mjx", "warp"} or min(args.batch_sizes) < 1:
+        p.error("--backends: a comma-separated list of mujoco, mjx, warp; --batch-sizes >= 1")
+    if "warp" in backends:
+        try:
+            importlib.import_module("f2f_jax.sim.warp_batch")
+        except ImportError as exc:
+            p.error(str(exc))
     base = config.get(args.config)
     presets = {name: config.with_sim_preset(base, name) for name in ("fast", "reference")}
     cores = os.cpu_count()
@@ -199,10 +222,69 @@ def main(argv=None) -> int:
         print(f"per core, same {k} triples: fast / PyBullet-original = "
               f"{result['ratio_mujoco_vs_pybullet']:.1f}x (target >= 30x); reference / PyBullet = "
               f"{result['ratio_reference_vs_pybullet']:.1f}x")
+    for backend in backends:
+        if backend != "mujoco":
+            result.update(batched_rows(backend, objs, lefts, rights, pieces["reference"],
+                                       rows["reference"]["outcomes"], presets["reference"],
+                                       args.batch_sizes, threads=args.threads))
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
         print(f"wrote {args.json}")
     return 0
+
+
+def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *, threads) -> dict:
+    """Full 11-trial evaluations of the triples tiled to each batch size on ``backend``;
+    prints a table and returns its JSON keys (``<backend>_...``)."""
+    from f2f_jax.sim.scene import build_model
+
+    if backend == "mjx":
+        import jax
+
+        from f2f_jax.sim import mjx_batch as batched
+
+        caps = dict(max_geom_pairs=batched.MAX_GEOM_PAIRS,
+                    max_contact_points=batched.MAX_CONTACT_POINTS)
+        device = str(jax.devices()[0].device_kind)
+    else:
+        from f2f_jax.sim import warp_batch as batched
+
+        caps = {}
+        device = ", ".join(batched.local_devices())
+    models = [build_model(h, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg,
+                          pad_collides=True, **caps) for h, left, right in zip(pieces, lefts, rights)]
+    print(f"\n{backend} on {device}: {len(models)} distinct imprint triples tiled to each batch size, "
+          "reference phases, all 11 trials")
+    print(f"{'batch':>6s} {'compile s':>9s} {'run s':>7s} {'evals/s':>8s} {'env steps/s':>11s} "
+          f"{'grasp':>6s} {'agree':>6s}")
+    out = {f"{backend}_device": device, f"{backend}_rows": []}
+    for size in sizes:
+        idx = np.arange(size) % len(models)
+        chosen = [models[i] for i in idx]
+        start = time.perf_counter()
+        if backend == "mjx":
+            sim_ = batched.simulator_for(chosen[0], cfg)
+            before = sim_.compile_seconds
+            res = sim_.run(sim_.batch(chosen), chunk=size)
+            compile_s = sim_.compile_seconds - before
+        else:
+            res = batched.WarpGraspSimulator(cfg, threads=threads).run(chosen)
+            compile_s = res["compile_seconds"]
+        run_s = time.perf_counter() - start - compile_s
+        agree = float((res["outcome"] == reference[idx]).mean())
+        row = dict(batch=size, compile_s=compile_s, run_s=run_s, evals_per_s=size / run_s,
+                   env_steps_per_s=float(res["steps"].sum()) / run_s,
+                   grasp_rate=float(res["outcome"][:, 0].mean()), agreement_with_mujoco=agree,
+                   host_approach_s=res.get("approach_seconds"))
+        out[f"{backend}_rows"].append(row)
+        print(f"{size:6d} {compile_s:9.1f} {run_s:7.1f} {row['evals_per_s']:8.2f} "
+              f"{row['env_steps_per_s']:11.0f} {row['grasp_rate']:6.2f} {agree:6.3f}", flush=True)
+    best = max(out[f"{backend}_rows"], key=lambda r: r["evals_per_s"])
+    out[f"{backend}_evals_per_s"] = best["evals_per_s"]
+    out[f"{backend}_env_steps_per_s"] = best["env_steps_per_s"]
+    if backend == "mjx":  # one contact path so far: convex meshes
+        out["mjx_mesh_env_steps_per_s"] = best["env_steps_per_s"]
+    return out
 
 
 if __name__ == "__main__":

@@ -107,3 +107,15 @@ def test_perturbed_finger_is_feasible_and_new(cfg):
     assert finger.min() >= -1.0 and finger.max() <= 1.0
     flipped = np.count_nonzero((finger < 0) != (left < 0))
     assert 0 < flipped < 0.1 * left.size  # a different finger, still close to the imprint
+
+
+def test_gpu_check_refuses_a_machine_without_a_gpu_unless_asked(monkeypatch, capsys):
+    """benchmarks/gpu_check.py sizes its steps for a GPU: on a CPU it runs only with --cpu."""
+    gpu_check = importlib.import_module("benchmarks.gpu_check")
+    monkeypatch.setattr(gpu_check, "device_info", lambda: {"jax": ["cpu:cpu"], "warp": ["cpu"]})
+    with pytest.raises(SystemExit) as exc:
+        gpu_check.main(["--out", "unused.json"])
+    assert exc.value.code == 2 and "--cpu" in capsys.readouterr().err
+    names = [name for name, _, _ in gpu_check.plan(gpu_check.argparse.Namespace(
+        tiny=True, sizes=[2], throughput_s=1, agreement_s=1, training_s=1))]
+    assert names == ["throughput", "agreement", "training"]

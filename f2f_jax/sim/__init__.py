@@ -5,7 +5,7 @@ triples in, [N, 11] uint8 outcomes out (``TRIAL_NAMES`` order).
 """
 
 from f2f_jax.config import TRIAL_NAMES
-from f2f_jax.sim.mujoco_cpu import EvaluationInfo, evaluate
+from f2f_jax.sim.mujoco_cpu import BACKENDS, EvaluationInfo, evaluate
 from f2f_jax.sim.protocol import GraspRunner, TrialResult, run_trials
 from f2f_jax.sim.scene import (
     GRIPPER_XML,
@@ -19,7 +19,7 @@ from f2f_jax.sim.scene import (
 )
 
 __all__ = [
-    "GRIPPER_XML", "EvaluationInfo", "GraspRunner", "JawOpener", "SceneIds", "SceneLayout",
+    "BACKENDS", "GRIPPER_XML", "EvaluationInfo", "GraspRunner", "JawOpener", "SceneIds", "SceneLayout",
     "TRIAL_NAMES", "TrialResult", "build_model", "describe_layout", "evaluate",
     "finger_object_contacts", "run_trials", "scene_ids",
 ]

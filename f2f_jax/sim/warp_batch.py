@@ -45,15 +45,15 @@ from f2f_jax.config import Config, with_sim_preset
 from f2f_jax.errors import MissingExtraError
 
 try:
-    import mujoco_warp as mjw
     import warp as wp
+
+    # warp prints a banner and a line per compiled module; a library's user did not ask for them
+    wp.config.quiet = True
+    import mujoco_warp as mjw
 except ImportError as exc:  # pragma: no cover - exercised where the extra is missing
     raise MissingExtraError(
         f"backend='warp' needs MuJoCo Warp ({exc.name} is not installed): "
         'pip install -e ".[warp]"') from exc
-
-# warp prints a banner and a line per compiled module; a library's user did not ask for them
-wp.config.quiet = True
 
 from f2f_jax.sim.protocol import CHECK_EVERY, _SPIN_RADIUS, lift_targets
 from f2f_jax.sim.scene import JawOpener, scene_ids
@@ -90,6 +90,9 @@ ROWS_PER_WORLD = 4 * 96 + 16
 # Device memory per world, measured on the default layout (8 object and 2 x 16 finger pieces
 # of 32 vertices); the chunk per device keeps within 60% of its memory.
 BYTES_PER_WORLD = 3 * 2**20
+# Devices whose kernels this process has compiled (loaded from warp's disk cache, or built):
+# the first step on each is timed as compiling.
+_WARM_DEVICES: set = set()
 
 
 def default_device() -> str:
@@ -180,6 +183,8 @@ class _Chunk:
     def __init__(self, template: mujoco.MjModel, table: MeshTable, fields: dict, device: str):
         nworld = len(fields["qpos0"])
         self.device, self.nworld = device, nworld
+        self._graph, self._steps_taken = None, 0
+        self._capture = wp.get_device(device).is_cuda
         with wp.ScopedDevice(device):
             m = mjw.put_model(template, batch_sizes={k: nworld for k in WORLD_FIELDS})
             for k, v in table.fields.items():
@@ -206,8 +211,26 @@ class _Chunk:
                   device=self.device)
 
     def step(self):
+        """One physics step of every world.  On a GPU the step is a CUDA graph captured at the
+        second call (the first loads the kernels), so one launch replays its ~100 kernels; if
+        capturing fails, steps are launched kernel by kernel (slower, same physics)."""
         with wp.ScopedDevice(self.device):
+            if self._graph is not None:
+                wp.capture_launch(self._graph)
+                return
+            if self._steps_taken >= 1 and self._capture:
+                try:
+                    with wp.ScopedCapture() as capture:
+                        mjw.step(self.m, self.d)
+                    self._graph = capture.graph
+                    wp.capture_launch(self._graph)  # the captured step did not run yet
+                    return
+                except Exception as exc:  # noqa: BLE001 - a slower path remains
+                    log.warning("warp backend: CUDA graph capture failed on %s (%s); "
+                                "launching kernels one by one", self.device, exc)
+                    self._capture = False
             mjw.step(self.m, self.d)
+            self._steps_taken += 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -237,10 +260,10 @@ class WarpGraspSimulator:
         self.compile_seconds = 0.0
         self.step_seconds = 0.0
         self.world_steps = 0
+        self.approach_seconds = 0.0  # the host's opening rule (JawOpener per world)
         self.overflowed = 0  # worlds failed because a buffer overflowed (should stay 0)
         self.peak_pairs = 0.0  # most broad-phase pairs per world in a chunk, for sizing
         self.peak_rows = 0  # most constraint rows in one world
-        self._warm = set()
 
     # ---------------------------------------------------------------- rounds
     def _chunks(self, models, table, which):
@@ -267,11 +290,11 @@ class WarpGraspSimulator:
                 before_step(k)
             for _, ch in chunks:
                 ch.step()
-            first = not all(ch.device in self._warm for _, ch in chunks)
+            first = not all(ch.device in _WARM_DEVICES for _, ch in chunks)
             if first:  # the first step compiles every kernel (minutes on a CPU, once per process)
                 for _, ch in chunks:
                     wp.synchronize_device(ch.device)
-                    self._warm.add(ch.device)
+                    _WARM_DEVICES.add(ch.device)
                 self.compile_seconds += time.perf_counter() - t
                 t = time.perf_counter()
             if (k + 1) % CHECK_EVERY == 0 or k == n - 1:
@@ -338,6 +361,7 @@ class WarpGraspSimulator:
         bad = np.zeros(n, bool)
         self._steps(chunks, self.n_settle, bad)
         # approach: the CPU backend's own opening rule, from each world's settled pose
+        t = time.perf_counter()
         z_start = np.empty(n)
         for sl, ch in chunks:
             q = ch.get("qpos")
@@ -356,6 +380,7 @@ class WarpGraspSimulator:
             c = ch.get("ctrl")
             c[:, ids.grip_act] = low
             ch.set_state(qpos=q, qvel=qvel, ctrl=c)
+        self.approach_seconds += time.perf_counter() - t
         self._steps(chunks, self.n_close, bad)
 
         def lift(k):
@@ -393,7 +418,8 @@ class WarpGraspSimulator:
         """The 11 trials of every model (``scene.build_model(..., pad_collides=True)``, one
         layout).  Returns dict(outcome [N, 11] uint8, unstable [N] (trials failed by an
         exploding state or an overflowed buffer), steps [N] (physics steps per candidate),
-        compile_seconds, step_seconds (stepping after the first step), world_steps, devices,
+        compile_seconds, step_seconds (stepping after the first step), world_steps,
+        approach_seconds (the openings, computed on the host), devices,
         overflowed (worlds failed by a full buffer: a warning is logged), peak_pairs (broad-phase
         pairs per world, most in one chunk), peak_rows)."""
         if self.cfg.sim.push_point != "com":
@@ -445,7 +471,8 @@ class WarpGraspSimulator:
                         self.peak_pairs, CONTACTS_PER_WORLD)
         return dict(outcome=outcome, unstable=unstable, steps=steps,
                     compile_seconds=self.compile_seconds, step_seconds=self.step_seconds,
-                    world_steps=self.world_steps, devices=list(self.devices),
+                    world_steps=self.world_steps, approach_seconds=self.approach_seconds,
+                    devices=list(self.devices),
                     overflowed=self.overflowed, peak_pairs=self.peak_pairs,
                     peak_rows=self.peak_rows)
 

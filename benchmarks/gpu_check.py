@@ -1,0 +1,146 @@
+"""The GPU check of issue 16: every accelerator figure in one command and one JSON.
+
+    python benchmarks/gpu_check.py --out gpu_check.json         # one GPU: <= 8 minutes end to end
+    python benchmarks/gpu_check.py --cpu --tiny --out dry.json   # dry run on a CPU (minutes)
+
+Runs, one after the other, each as its own process with its own time limit (a step that runs
+out of time or fails is recorded with its output's tail, and the next one still runs):
+
+1. ``sim_throughput.py --backends mujoco,mjx,warp``: plain MuJoCo on the host's cores (fast and
+   reference presets), MJX and MuJoCo Warp on the same imprint triples tiled to batch sizes up
+   to 8,192 (``--sizes``): full evaluations/s, environment steps/s, compile seconds apart,
+   grasp success and agreement with plain MuJoCo, the device's name.
+2. ``sim_agreement.py --presets reference reference --backends warp mujoco``: MuJoCo Warp
+   against plain MuJoCo on 256 mixed triples (imprint, WSG50, cut, perturbed pairs of 64
+   builtin objects): per-trial, per-kind and whole-vector agreement, rates per kind.
+3. ``train_throughput.py --config paper``: the paper-size training step per stage.
+
+The JSON (written after every step, so a killed run keeps what finished) holds ``device``
+(GPU name, warp and JAX devices), ``steps`` ({name: {rc, seconds, command, tail}}) and each
+step's own JSON under its name: ``throughput``, ``agreement``, ``training``.
+
+``--cpu`` allows running without a GPU (otherwise refused: the sizes would take hours on a CPU);
+``--tiny`` shrinks every step to a smoke test (tiny config, 2 triples, batches of 2 and 4, 4
+agreement triples on 1 object).  Object pieces come from the coacd cache (``F2F_CACHE_DIR``):
+carry a warm cache to a bare machine, or the first step spends minutes in coacd.
+
+A bare GPU machine needs the project's dependencies importable.  The device machine of this
+project has JAX, flax, optax, orbax, scipy, scikit-image, h5py and tqdm; carry wheels (Python
+3.12, manylinux x86-64) of mujoco 3.17.0, mujoco-mjx 3.17.0, mujoco-warp 3.17.0, warp-lang 1.19,
+trimesh, coacd and the project itself, as the device README says.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+TAIL = 4000  # characters of a step's output kept in the JSON
+
+
+def device_info() -> dict:
+    """The GPU as nvidia-smi names it, and the devices warp and JAX see."""
+    info: dict = {}
+    if shutil.which("nvidia-smi"):
+        out = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total,driver_version",
+                              "--format=csv,noheader"], capture_output=True, text=True)
+        info["nvidia_smi"] = out.stdout.strip().splitlines()
+    try:
+        import jax
+
+        info["jax"] = [f"{d.platform}:{d.device_kind}" for d in jax.devices()]
+    except Exception as exc:  # noqa: BLE001 - reported, not fatal
+        info["jax"] = f"unavailable: {exc}"
+    try:
+        from f2f_jax.sim import warp_batch
+
+        info["warp"] = warp_batch.local_devices()
+    except ImportError as exc:
+        info["warp"] = f"unavailable: {exc}"
+    return info
+
+
+def plan(args) -> list[tuple[str, list[str], int]]:
+    """(name, command, seconds allowed) of each step."""
+    py = sys.executable
+    if args.tiny:
+        thr = ["--config", "tiny", "--n", "2", "--batch-sizes", "2", "4"]
+        agr = ["--config", "tiny", "--n", "4", "--n-objects", "1"]
+        trn = ["--config", "tiny", "--steps", "2"]
+    else:
+        thr = ["--n", "24", "--batch-sizes", *map(str, args.sizes)]
+        agr = ["--n", "256", "--n-objects", "64"]
+        trn = ["--config", "paper", "--steps", "5"]
+    return [
+        ("throughput", [py, str(HERE / "sim_throughput.py"), *thr, "--per-core-n", "0",
+                        "--no-pybullet", "--meshing-n", "1", "--backends", "mujoco,mjx,warp"],
+         args.throughput_s),
+        ("agreement", [py, str(HERE / "sim_agreement.py"), *agr, "--presets", "reference",
+                       "reference", "--backends", "warp", "mujoco"], args.agreement_s),
+        ("training", [py, str(HERE / "train_throughput.py"), *trn], args.training_s),
+    ]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=Path("gpu_check.json"), help="the JSON to write")
+    p.add_argument("--cpu", action="store_true", help="allow a run without a GPU (a dry run)")
+    p.add_argument("--tiny", action="store_true", help="every step at smoke-test size")
+    p.add_argument("--sizes", type=int, nargs="+", default=[64, 1024, 4096, 8192],
+                   help="batch sizes of the batched backends (default 64 1024 4096 8192)")
+    p.add_argument("--throughput-s", type=int, default=270, help="time allowed to step 1 (s)")
+    p.add_argument("--agreement-s", type=int, default=150, help="time allowed to step 2 (s)")
+    p.add_argument("--training-s", type=int, default=60, help="time allowed to step 3 (s)")
+    p.add_argument("--only", nargs="+", choices=["throughput", "agreement", "training"],
+                   default=None, help="run only these steps")
+    args = p.parse_args(argv)
+    info = device_info()
+    has_gpu = bool(info.get("nvidia_smi")) or (isinstance(info.get("warp"), list)
+                                               and any(d.startswith("cuda") for d in info["warp"]))
+    if not has_gpu and not args.cpu:
+        p.error("no GPU found (nvidia-smi, warp); pass --cpu for a dry run on this machine")
+    result = {"device": info, "tiny": args.tiny, "steps": {}}
+    print(f"device: {json.dumps(info)}", flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
+    start_all = time.perf_counter()
+    for name, command, limit in plan(args):
+        if args.only and name not in args.only:
+            continue
+        with tempfile.TemporaryDirectory(prefix="f2f-gpu-check-") as tmp:
+            out_json = Path(tmp) / f"{name}.json"
+            start = time.perf_counter()
+            print(f"\n== {name} (<= {limit} s): {' '.join(command[1:])}", flush=True)
+            try:
+                proc = subprocess.run([*command, "--json", str(out_json)], capture_output=True,
+                                      text=True, timeout=limit, env=env)
+                rc, output = proc.returncode, proc.stdout + proc.stderr
+            except subprocess.TimeoutExpired as exc:
+                rc = "timeout"
+                output = ((exc.stdout or b"").decode(errors="replace")
+                          + (exc.stderr or b"").decode(errors="replace"))
+            seconds = time.perf_counter() - start
+            lines = [line for line in output.splitlines() if "load on device" not in line]
+            tail = "\n".join(lines)[-TAIL:]
+            print(tail, flush=True)
+            result["steps"][name] = dict(rc=rc, seconds=seconds, command=command[1:], tail=tail)
+            if out_json.exists():
+                result[name] = json.loads(out_json.read_text())
+        result["seconds"] = time.perf_counter() - start_all
+        args.out.write_text(json.dumps(result, indent=1))
+    ok = all(s["rc"] == 0 for s in result["steps"].values())
+    print(f"\nwrote {args.out} after {result['seconds']:.0f} s; steps "
+          + ", ".join(f"{k}: {'ok' if v['rc'] == 0 else v['rc']}" for k, v in result["steps"].items()))
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
