@@ -6,22 +6,25 @@
 Runs, one after the other, each as its own process with its own time limit (a step that runs
 out of time or fails is recorded with its output's tail, and the next one still runs):
 
-1. ``sim_throughput.py --backends mujoco,mjx,warp``: plain MuJoCo on the host's cores (fast and
-   reference presets), MJX and MuJoCo Warp on the same imprint triples tiled to batch sizes up
-   to 8,192 (``--sizes``): full evaluations/s, environment steps/s, compile seconds apart,
-   grasp success and agreement with plain MuJoCo, the device's name.
-2. ``sim_agreement.py --presets reference reference --backends warp mujoco``: MuJoCo Warp
+1. ``sim_throughput.py --backends mujoco,warp``: plain MuJoCo on the host's cores (fast and
+   reference presets) and MuJoCo Warp on the same imprint triples tiled to batch sizes up to
+   8,192 (``--sizes``): full evaluations/s, environment steps/s, compile seconds apart, grasp
+   success and agreement with plain MuJoCo, the device's name.
+2. ``mjx_contacts.py --vertices 32``: MJX's environment steps/s from held grasps at the same
+   batch sizes, compile apart (MJX's full evaluations run at ~2 per second on an H100: a full
+   8,192-candidate batch would take an hour, so its rate is measured per step).
+3. ``sim_agreement.py --presets reference reference --backends warp mujoco``: MuJoCo Warp
    against plain MuJoCo on 256 mixed triples (imprint, WSG50, cut, perturbed pairs of 64
    builtin objects): per-trial, per-kind and whole-vector agreement, rates per kind.
-3. ``train_throughput.py --config paper``: the paper-size training step per stage.
+4. ``train_throughput.py --config paper``: the paper-size training step per stage.
 
 The JSON (written after every step, so a killed run keeps what finished) holds ``device``
 (GPU name, warp and JAX devices), ``steps`` ({name: {rc, seconds, command, tail}}) and each
-step's own JSON under its name: ``throughput``, ``agreement``, ``training``.
+step's own JSON under its name: ``throughput``, ``mjx``, ``agreement``, ``training``.
 
 ``--cpu`` allows running without a GPU (otherwise refused: the sizes would take hours on a CPU);
 ``--tiny`` shrinks every step to a smoke test (tiny config, 2 triples, batches of 2 and 4, 4
-agreement triples on 1 object).  Object pieces come from the coacd cache (``F2F_CACHE_DIR``):
+agreement triples on 1 object, MJX at batch 2).  Object pieces come from the coacd cache (``F2F_CACHE_DIR``):
 carry a warm cache to a bare machine, or the first step spends minutes in coacd.
 
 A bare GPU machine needs the project's dependencies importable.  The device machine of this
@@ -73,16 +76,20 @@ def plan(args) -> list[tuple[str, list[str], int]]:
     py = sys.executable
     if args.tiny:
         thr = ["--config", "tiny", "--n", "2", "--batch-sizes", "2", "4"]
+        mjx = ["--n", "1", "--batch", "2", "--steps", "5"]
         agr = ["--config", "tiny", "--n", "4", "--n-objects", "1"]
         trn = ["--config", "tiny", "--steps", "2"]
     else:
-        thr = ["--n", "24", "--batch-sizes", *map(str, args.sizes)]
+        sizes = [str(s) for s in args.sizes]
+        thr = ["--n", "24", "--batch-sizes", *sizes]
+        mjx = ["--n", "8", "--batch", *sizes, "--steps", "20"]
         agr = ["--n", "256", "--n-objects", "64"]
         trn = ["--config", "paper", "--steps", "5"]
     return [
         ("throughput", [py, str(HERE / "sim_throughput.py"), *thr, "--per-core-n", "0",
-                        "--no-pybullet", "--meshing-n", "1", "--backends", "mujoco,mjx,warp"],
+                        "--no-pybullet", "--meshing-n", "1", "--backends", "mujoco,warp"],
          args.throughput_s),
+        ("mjx", [py, str(HERE / "mjx_contacts.py"), *mjx, "--vertices", "32"], args.mjx_s),
         ("agreement", [py, str(HERE / "sim_agreement.py"), *agr, "--presets", "reference",
                        "reference", "--backends", "warp", "mujoco"], args.agreement_s),
         ("training", [py, str(HERE / "train_throughput.py"), *trn], args.training_s),
@@ -96,10 +103,11 @@ def main(argv=None) -> int:
     p.add_argument("--tiny", action="store_true", help="every step at smoke-test size")
     p.add_argument("--sizes", type=int, nargs="+", default=[64, 1024, 4096, 8192],
                    help="batch sizes of the batched backends (default 64 1024 4096 8192)")
-    p.add_argument("--throughput-s", type=int, default=270, help="time allowed to step 1 (s)")
-    p.add_argument("--agreement-s", type=int, default=150, help="time allowed to step 2 (s)")
-    p.add_argument("--training-s", type=int, default=60, help="time allowed to step 3 (s)")
-    p.add_argument("--only", nargs="+", choices=["throughput", "agreement", "training"],
+    p.add_argument("--throughput-s", type=int, default=200, help="time allowed to step 1 (s)")
+    p.add_argument("--mjx-s", type=int, default=100, help="time allowed to step 2 (s)")
+    p.add_argument("--agreement-s", type=int, default=130, help="time allowed to step 3 (s)")
+    p.add_argument("--training-s", type=int, default=50, help="time allowed to step 4 (s)")
+    p.add_argument("--only", nargs="+", choices=["throughput", "mjx", "agreement", "training"],
                    default=None, help="run only these steps")
     args = p.parse_args(argv)
     info = device_info()

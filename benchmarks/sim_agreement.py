@@ -39,6 +39,7 @@ differing (index, object, kind and both outcome vectors of every differing tripl
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -54,7 +55,7 @@ from f2f_jax.data import builtin_objects, load_mesh, mesh_files
 from f2f_jax.data.dataset import KINDS, pretraining_pairs
 from f2f_jax.errors import F2FError
 from f2f_jax.geometry import is_feasible, largest_component, mesh_to_tsdf
-from f2f_jax.geometry.hulls import finger_hulls
+from f2f_jax.geometry.hulls import finger_hulls, with_max_vertices
 from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
 
 FINGER_KINDS = (*KINDS, "perturbed")
@@ -233,6 +234,9 @@ def main(argv=None) -> int:
                    help="the simulator of each side, of mujoco, mjx, warp (default: mujoco mujoco)")
     p.add_argument("--config", default="default", choices=sorted(config.CONFIGS),
                    help="the config both presets are applied to (default: default)")
+    p.add_argument("--hull-vertices", type=int, default=None, metavar="V",
+                   help="the judged side's pieces with at most V vertices each: its object pieces "
+                        "reduced from the judge's cached ones, its finger hulls made with V")
     p.add_argument("--seed", type=int, default=0, help="builtin objects, cut and perturbed fingers")
     p.add_argument("--threads", type=int, default=os.cpu_count(),
                    help="MuJoCo worker threads and coacd processes (default: all cores)")
@@ -244,6 +248,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.n < 1 or args.n_objects < 1 or args.threads < 1 or args.render < 0:
         p.error("--n, --n-objects and --threads must be >= 1, --render >= 0")
+    if args.hull_vertices is not None and args.hull_vertices < 4:
+        p.error("--hull-vertices must be >= 4")
     if args.objects is not None:
         if not args.objects.is_dir():
             p.error(f"--objects {args.objects}: no such directory")
@@ -253,6 +259,8 @@ def main(argv=None) -> int:
     judged, judge = args.presets
     labels = tuple(name if backend == "mujoco" else f"{name}@{backend}"
                    for name, backend in zip(args.presets, args.backends))
+    if args.hull_vertices is not None:
+        labels = (f"{labels[0]}/v{args.hull_vertices}", labels[1])
     if labels[0] == labels[1]:
         labels = (f"{labels[0]}-1", f"{labels[1]}-2")
     backend_of = dict(zip(labels, args.backends))
@@ -273,10 +281,14 @@ def main(argv=None) -> int:
 
     used = sorted({tr["object"] for tr in triples})
     presets, meshing = {}, None
-    for label, name in zip(labels, args.presets):
+    for side, (label, name) in enumerate(zip(labels, args.presets)):
         cfg = config.with_sim_preset(base, name)
         t = time.perf_counter()
         made, seconds = preset_hulls(tsdfs[used], cfg, args.threads)
+        if side == 0 and args.hull_vertices is not None:
+            v = args.hull_vertices
+            made = [h if isinstance(h, str) else with_max_vertices(h, v) for h in made]
+            cfg = cfg.replace(geometry=dataclasses.replace(cfg.geometry, hull_vertices=v))
         by_object = dict(zip(used, made))
         presets[label] = (cfg, by_object)
         how = (f"{cfg.geometry.object_method}, per object mean {seconds.mean():.3f} s, max {seconds.max():.3f} s"
@@ -340,6 +352,7 @@ def main(argv=None) -> int:
 
     if args.json:
         result = dict(n=len(triples), presets=list(labels), backends=list(args.backends),
+                      hull_vertices=args.hull_vertices,
                       config=args.config, seed=args.seed, source=source,
                       kinds=counts, **stats, object_meshing_s=meshing, steps_per_eval=steps,
                       seconds=seconds, threads=args.threads, differing=differing)

@@ -224,18 +224,22 @@ def main(argv=None) -> int:
               f"{result['ratio_reference_vs_pybullet']:.1f}x")
     for backend in backends:
         if backend != "mujoco":
-            result.update(batched_rows(backend, objs, lefts, rights, pieces["reference"],
-                                       rows["reference"]["outcomes"], presets["reference"],
-                                       args.batch_sizes, threads=args.threads))
+            if args.json:  # what is measured so far, in case the batched rows are cut short
+                args.json.write_text(json.dumps(result, indent=1))
+            batched_rows(backend, objs, lefts, rights, pieces["reference"],
+                         rows["reference"]["outcomes"], presets["reference"], args.batch_sizes,
+                         threads=args.threads, result=result, json_path=args.json)
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
         print(f"wrote {args.json}")
     return 0
 
 
-def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *, threads) -> dict:
+def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *, threads, result,
+                 json_path=None) -> None:
     """Full 11-trial evaluations of the triples tiled to each batch size on ``backend``;
-    prints a table and returns its JSON keys (``<backend>_...``)."""
+    prints a table and adds its JSON keys (``<backend>_...``) to ``result``, written to
+    ``json_path`` after every row."""
     from f2f_jax.sim.scene import build_model
 
     if backend == "mjx":
@@ -257,7 +261,8 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
           "reference phases, all 11 trials")
     print(f"{'batch':>6s} {'compile s':>9s} {'run s':>7s} {'evals/s':>8s} {'env steps/s':>11s} "
           f"{'grasp':>6s} {'agree':>6s}")
-    out = {f"{backend}_device": device, f"{backend}_rows": []}
+    out = result
+    out.update({f"{backend}_device": device, f"{backend}_rows": []})
     for size in sizes:
         idx = np.arange(size) % len(models)
         chosen = [models[i] for i in idx]
@@ -279,12 +284,13 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
         out[f"{backend}_rows"].append(row)
         print(f"{size:6d} {compile_s:9.1f} {run_s:7.1f} {row['evals_per_s']:8.2f} "
               f"{row['env_steps_per_s']:11.0f} {row['grasp_rate']:6.2f} {agree:6.3f}", flush=True)
-    best = max(out[f"{backend}_rows"], key=lambda r: r["evals_per_s"])
-    out[f"{backend}_evals_per_s"] = best["evals_per_s"]
-    out[f"{backend}_env_steps_per_s"] = best["env_steps_per_s"]
-    if backend == "mjx":  # one contact path so far: convex meshes
-        out["mjx_mesh_env_steps_per_s"] = best["env_steps_per_s"]
-    return out
+        best = max(out[f"{backend}_rows"], key=lambda r: r["evals_per_s"])
+        out[f"{backend}_evals_per_s"] = best["evals_per_s"]
+        out[f"{backend}_env_steps_per_s"] = best["env_steps_per_s"]
+        if backend == "mjx":  # one contact path so far: convex meshes
+            out["mjx_mesh_env_steps_per_s"] = best["env_steps_per_s"]
+        if json_path:
+            json_path.write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

@@ -192,6 +192,23 @@ def pad_hulls(pieces: list[np.ndarray], max_pieces: int, max_vertices: int) -> H
     return _pack([reduce_vertices(p, max_vertices) for p in pieces], max_pieces, max_vertices)
 
 
+def with_max_vertices(hulls: Hulls, max_vertices: int) -> Hulls:
+    """The same pieces with at most ``max_vertices`` vertices each (``reduce_vertices``: each
+    shrinks inside its hull), in a ``[K, max_vertices]`` layout: a coarser copy of cached pieces
+    without decomposing the shape again."""
+    if max_vertices < 4:
+        raise ValueError(f"max_vertices must be >= 4, got {max_vertices}")
+    out = [reduce_vertices(p, max_vertices) if len(p) > max_vertices else np.asarray(p, np.float64)
+           for p in hulls.pieces()]
+    slots = np.nonzero(hulls.valid)[0]
+    packed = _pack(out, hulls.max_pieces, max_vertices)
+    # keep every piece in its own slot (the scene names geoms by slot)
+    vertices = np.zeros_like(packed.vertices)
+    counts = np.zeros_like(packed.counts)
+    vertices[slots], counts[slots] = packed.vertices[: len(slots)], packed.counts[: len(slots)]
+    return Hulls(vertices, counts)
+
+
 def _pack(pieces: list[np.ndarray], max_pieces: int, max_vertices: int) -> Hulls:
     """Already reduced pieces ([n_k <= max_vertices, 3]) into the padded arrays."""
     vertices = np.zeros((max_pieces, max_vertices, 3), np.float32)

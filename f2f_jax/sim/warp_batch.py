@@ -90,6 +90,12 @@ ROWS_PER_WORLD = 4 * 96 + 16
 # Device memory per world, measured on the default layout (8 object and 2 x 16 finger pieces
 # of 32 vertices); the chunk per device keeps within 60% of its memory.
 BYTES_PER_WORLD = 3 * 2**20
+# Overflows that lose pairs, contacts or constraint rows: the world's physics is wrong.  The
+# solver's iteration limits (ITERATIONS, LS_ITERATIONS) are not among them: plain MuJoCo stops
+# at the same limits without a word.
+_OT = mjw.OverflowType
+_LOST = int(_OT.NEFC | _OT.NJMAX_NNZ | _OT.BROADPHASE | _OT.NARROWPHASE | _OT.CCD
+            | _OT.EPA_HORIZON | _OT.NVMAX)
 # Devices whose kernels this process has compiled (loaded from warp's disk cache, or built):
 # the first step on each is timed as compiling.
 _WARM_DEVICES: set = set()
@@ -192,6 +198,7 @@ class _Chunk:
             for k, v in fields.items():
                 arr = getattr(m, k)
                 setattr(m, k, wp.array(v, dtype=arr.dtype, shape=arr.shape))
+            m.opt.warn_overflow = _LOST  # printed from the device; iteration limits are not
             for k, v in table.sizes.items():
                 setattr(m, k, v)
             self.m = m
@@ -316,7 +323,7 @@ class WarpGraspSimulator:
             finite = np.isfinite(qpos).all(1) & np.isfinite(qvel).all(1)
             # a world whose pairs, contacts or constraint rows overflowed their buffers lost some
             # of them: its physics is wrong, so it fails like an exploding one, and is counted
-            overflow = ch.get("overflow") != 0
+            overflow = (ch.get("overflow") & _LOST) != 0
             self.overflowed += int(np.count_nonzero(overflow & ~bad[sl]))
             bad[sl] |= ~finite | ~(speed <= s.max_speed) | overflow
             self.peak_pairs = max(self.peak_pairs, int(ch.get("ncollision")[0]) / ch.nworld)
