@@ -83,12 +83,15 @@ _COUNTED = {"mesh_vert": "nmeshvert", "mesh_face": "nmeshface", "mesh_normal": "
             "mesh_polyvert": "nmeshpolyvert", "mesh_polymap": "nmeshpolymap"}
 # Contact slots per world.  MuJoCo Warp's broad phase writes every pair whose bounds overlap into
 # the same pool as the contacts: a held imprint grasp of the default layout had ~150 such pairs
-# per world and 29 contacts (warp's CPU device, tiny config), so 320 leaves twice the room.
-# Constraint rows per world: elliptic cones with condim 4 take 4 rows per contact (128 seen).
-CONTACTS_PER_WORLD = 320
-ROWS_PER_WORLD = 4 * 96 + 16
-# Device memory per world, measured on the default layout (8 object and 2 x 16 finger pieces
-# of 32 vertices); the chunk per device keeps within 60% of its memory.
+# per world and 29 contacts (warp's CPU device, tiny config), so 512 leaves room.  Constraint
+# rows per world: elliptic cones with condim 4 take 4 rows per contact; 400 overflowed in
+# default-config grasps of builtin objects (more contacts than plain MuJoCo keeps).
+CONTACTS_PER_WORLD = 512
+ROWS_PER_WORLD = 1024
+# Device memory per world: the Model and Data arrays take 0.3 MB per world (measured on warp's
+# CPU device, default layout, the buffers above, one candidate per world); the step's collision
+# buffers come on top.  3 MB is a guess with room until it is measured on a GPU; chunks keep
+# within 60% of a device's memory.
 BYTES_PER_WORLD = 3 * 2**20
 # Overflows that lose pairs, contacts or constraint rows: the world's physics is wrong.  The
 # solver's iteration limits (ITERATIONS, LS_ITERATIONS) are not among them: plain MuJoCo stops
