@@ -72,6 +72,35 @@ def test_mesh_table_keeps_every_candidates_meshes(wb, sphere_models):
     assert (ids[0] == ids[2]).all()
 
 
+def test_device_openings_follow_the_host_rule(wb, sphere_models, tiny_cfg):
+    """The approach's openings computed on the device equal scene.JawOpener's, per world, for
+    the object at rest and turned by 30 degrees."""
+    import mujoco
+
+    from f2f_jax.sim.scene import JawOpener, object_quat
+
+    sim = wb.WarpGraspSimulator(tiny_cfg, devices=["cpu"])
+    table = sim.prepare(sphere_models)
+    ids = sim.ids
+    which = np.array([0, 1, 1])
+    yaws = np.deg2rad([0.0, 0.0, 30.0])
+    qpos = np.stack([np.array(sphere_models[c].qpos0) for c in which])
+    for w, yaw in enumerate(yaws):
+        qpos[w, ids.object_qpos + 3: ids.object_qpos + 7] = object_quat(yaw)
+    ch = wb._Chunk(sphere_models[0], table, wb.world_fields(sphere_models, table, which), "cpu")
+    ch.keep_finger_poses(qpos, ids.jaw_qpos)
+    ch.set_state(qpos=qpos)
+    ch.kinematics()
+    got = sim._device_openings(ch)
+    for w, c in enumerate(which):
+        data = mujoco.MjData(sphere_models[c])
+        data.qpos[:] = qpos[w]
+        want = JawOpener(sphere_models[c], ids, tiny_cfg)(data, tiny_cfg.sim.open_margin)
+        np.testing.assert_allclose(got[w], want, atol=2e-5)
+    # the imprint's fingers wrap the sphere: it opens wider than the pads stand off
+    assert (got[1] > got[0]).all()
+
+
 def test_warp_trials_agree_with_mujoco_on_the_clear_cases(wb, sphere_models, tiny_cfg):
     cpu = [run_trials(m, tiny_cfg).outcome for m in sphere_models]
     assert cpu[0].sum() == 0 and cpu[1].sum() == 11  # flat pads drop the sphere; the imprint holds it

@@ -12,8 +12,10 @@ bodies, joints and geom slots) and runs the trials as worlds of one MuJoCo Warp 
   that world.  MuJoCo Warp collides convex meshes by GJK/EPA with early outs, so pairs that do
   not touch cost little (unlike MJX's separating-axis test over every edge pair).
 * **The protocol of ``protocol.py``**, phase for phase and with its rules: place, settle,
-  approach (``scene.JawOpener`` on the host, the CPU backend's own code, from each world's
-  settled pose: ~20 ms of a host core per world), close, the lift profile, hold, the held
+  approach (``scene.JawOpener``'s rule from each world's settled pose, on the device: a kernel
+  over every world and line of its grid, then its back-off by exact distances from collision
+  passes with a margin; ``approach="host"`` runs ``JawOpener`` itself, ~20 ms of a host core
+  per world), close, the lift profile, hold, the held
   check (rise, and a finger-object contact among the last step's contacts); pushes from each
   held grasp's saved state; six turned grasps; health checks every ``CHECK_EVERY`` steps.
   Like the MJX backend, every phase runs to its full length whatever the preset (all worlds
@@ -95,6 +97,11 @@ ROWS_PER_WORLD = 1024
 # buffers come on top.  3 MB is a guess with room until it is measured on a GPU; chunks keep
 # within 60% of a device's memory.
 BYTES_PER_WORLD = 3 * 2**20
+# Where the approach's openings are computed: "device" (``scene.JawOpener``'s rule on the
+# device: a kernel over every world and line of its grid, then its back-off by exact
+# distances, from collision passes with a margin), or "host" (``scene.JawOpener`` itself, per
+# world: ~20 ms of a host core each).
+APPROACHES = ("device", "host")
 # Overflows that lose pairs, contacts or constraint rows: the world's physics is wrong.  The
 # solver's iteration limits (ITERATIONS, LS_ITERATIONS) are not among them: plain MuJoCo stops
 # at the same limits without a word.
@@ -136,6 +143,66 @@ def _set_column(values: wp.array2d(dtype=float), col: int, value: float):
     values[w, col] = value
 
 
+@wp.func
+def _span(dataid: wp.array2d(dtype=int), planes: wp.array2d(dtype=wp.vec4),
+          nplane: wp.array(dtype=int), geoms: wp.array(dtype=int),
+          xpos: wp.array2d(dtype=wp.vec3), xmat: wp.array2d(dtype=wp.mat33), w: int,
+          y: float, z: float):
+    """Union of the geoms' extents along x on the line (y, z): (lo, hi), (+big, -big) on a
+    miss (``scene.JawOpener._intervals``, one line, one world)."""
+    lo = float(1.0e30)
+    hi = float(-1.0e30)
+    for i in range(geoms.shape[0]):
+        g = geoms[i]
+        mesh = dataid[w, g]
+        if mesh < 0:
+            continue
+        rot = xmat[w, g]
+        pos = xpos[w, g]
+        upper = float(1.0e30)
+        lower = float(-1.0e30)
+        ok = bool(True)
+        for f in range(nplane[mesh]):
+            pl = planes[mesh, f]
+            n = rot * wp.vec3(pl[0], pl[1], pl[2])
+            d = pl[3] - wp.dot(n, pos)
+            c = -(d + n[1] * y + n[2] * z)
+            if n[0] > 1.0e-12:
+                upper = wp.min(upper, c / n[0])
+            elif n[0] < -1.0e-12:
+                lower = wp.max(lower, c / n[0])
+            elif c < 0.0:
+                ok = False
+        if ok and lower <= upper:
+            lo = wp.min(lo, lower)
+            hi = wp.max(hi, upper)
+    return lo, hi
+
+
+@wp.kernel
+def _clearance(dataid: wp.array2d(dtype=int), planes: wp.array2d(dtype=wp.vec4),
+               nplane: wp.array(dtype=int), obj: wp.array(dtype=int), left: wp.array(dtype=int),
+               right: wp.array(dtype=int), xpos: wp.array2d(dtype=wp.vec3),
+               xmat: wp.array2d(dtype=wp.mat33), fxpos: wp.array2d(dtype=wp.vec3),
+               fxmat: wp.array2d(dtype=wp.mat33), lines: wp.array(dtype=wp.vec2),
+               need: wp.array2d(dtype=float)):
+    """need[w] = max over lines of (left reach - object's near side, object's far side - right
+    reach): the openings less the margin, as ``scene.JawOpener`` computes them.  Fingers at
+    their jaw-0 poses (fxpos, fxmat), the object where it lies now (xpos, xmat)."""
+    w, k = wp.tid()
+    y = lines[k][0]
+    z = lines[k][1]
+    olo, ohi = _span(dataid, planes, nplane, obj, xpos, xmat, w, y, z)
+    if olo > ohi:
+        return
+    llo, lhi = _span(dataid, planes, nplane, left, fxpos, fxmat, w, y, z)
+    if llo <= lhi:
+        wp.atomic_max(need, w, 0, lhi - olo)
+    rlo, rhi = _span(dataid, planes, nplane, right, fxpos, fxmat, w, y, z)
+    if rlo <= rhi:
+        wp.atomic_max(need, w, 1, ohi - rlo)
+
+
 # --------------------------------------------------------------------------------------------
 # Candidates -> one model with per-world geometry
 # --------------------------------------------------------------------------------------------
@@ -147,6 +214,8 @@ class MeshTable:
     fields: dict
     offset: np.ndarray
     sizes: dict  # the Model's counts of the table (nmesh, nmeshvert, ..., npolygonmax)
+    planes: np.ndarray  # [nmesh, F, 4] face planes (n, d), n . p + d <= 0 inside, mesh frame;
+    # rows past a mesh's faces are (0, 0, 0, -1), which exclude nothing
 
     @classmethod
     def of(cls, models: list[mujoco.MjModel]) -> "MeshTable":
@@ -170,7 +239,25 @@ class MeshTable:
         counts = {"nmesh": nmesh, **{_COUNTED[t]: n for t, n in sizes.items() if t in _COUNTED}}
         counts["npolygonmax"] = max(int(m.npolygonmax) for m in models)
         counts["nmeshdegmax"] = max(int(m.nmeshdegmax) for m in models)
-        return cls(fields, np.asarray(offset, np.int64), counts)
+        return cls(fields, np.asarray(offset, np.int64), counts, _face_planes(fields))
+
+
+def _face_planes(f: dict) -> np.ndarray:
+    """[nmesh, F, 4] outward face planes of every mesh of a table, from MuJoCo's polygons (the
+    hull's faces, coplanar triangles merged) and one vertex of each."""
+    nmesh = len(f["mesh_polyadr"])
+    most = int(f["mesh_polynum"].max()) if nmesh else 0
+    out = np.zeros((nmesh, max(most, 1), 4))
+    out[..., 3] = -1.0
+    mesh = np.repeat(np.arange(nmesh), f["mesh_polynum"])
+    poly = f["mesh_polyadr"][mesh] + (np.arange(len(mesh)) - np.repeat(
+        np.cumsum(f["mesh_polynum"]) - f["mesh_polynum"], f["mesh_polynum"]))
+    slot = poly - f["mesh_polyadr"][mesh]
+    n = f["mesh_polynormal"][poly]
+    vert = f["mesh_vert"][f["mesh_vertadr"][mesh] + f["mesh_polyvert"][f["mesh_polyvertadr"][poly]]]
+    out[mesh, slot, :3] = n
+    out[mesh, slot, 3] = -np.einsum("pk,pk->p", n, vert)
+    return out
 
 
 def world_fields(models: list[mujoco.MjModel], table: MeshTable, which: np.ndarray) -> dict:
@@ -209,6 +296,65 @@ class _Chunk:
             self.m = m
             self.d = mjw.put_data(template, mujoco.MjData(template), nworld=nworld,
                                   nconmax=CONTACTS_PER_WORLD, njmax=ROWS_PER_WORLD)
+            self.planes = wp.array(table.planes.astype(np.float32), dtype=wp.vec4)
+            self.nplane = wp.array(table.fields["mesh_polynum"].astype(np.int32), dtype=int)
+            self.finger_xpos = self.finger_xmat = None
+
+    def kinematics(self):
+        """Positions of every body and geom for the current qpos (a step leaves those of the
+        state before it)."""
+        with wp.ScopedDevice(self.device):
+            mjw.kinematics(self.m, self.d)
+
+    def keep_finger_poses(self, qpos: np.ndarray, jaw_qpos: np.ndarray):
+        """The geoms' poses with the jaws at 0 (the fingers' reach is measured there), kept for
+        ``clearance``; leaves the state to be set by the caller."""
+        q = np.array(qpos)
+        q[:, jaw_qpos] = 0.0
+        self.set_state(qpos=q)
+        with wp.ScopedDevice(self.device):
+            mjw.kinematics(self.m, self.d)
+            self.finger_xpos = wp.clone(self.d.geom_xpos)
+            self.finger_xmat = wp.clone(self.d.geom_xmat)
+
+    def finger_distance(self, ids, reach: float) -> np.ndarray:
+        """[W, 2] smallest distance (m) between each jaw's finger pieces and the object's at the
+        current qpos, where it is below ``reach`` (``reach`` elsewhere), as
+        ``scene.finger_object_distance``: one collision pass with the fingers' margin set to
+        ``reach``, so pairs closer than that report their distance as a contact's."""
+        n = self.nworld
+        own = self.m.geom_margin
+        margin = np.zeros(own.shape, np.float32)
+        fingers = ids.all_finger_geoms
+        margin[:, fingers] = reach
+        self.m.geom_margin = wp.array(margin, dtype=own.dtype, device=self.device)
+        try:
+            with wp.ScopedDevice(self.device):
+                mjw.kinematics(self.m, self.d)
+                mjw.collision(self.m, self.d)
+        finally:
+            self.m.geom_margin = own
+        best = np.full((n, 2), reach)
+        nacon = int(self.get("nacon")[0])
+        c = self.d.contact
+        geom, dist = c.geom.numpy()[:nacon], c.dist.numpy()[:nacon]
+        world = c.worldid.numpy()[:nacon]
+        for side in (0, 1):
+            fin = ids.finger_geoms[side]
+            pair = ((np.isin(geom[:, 0], fin) & np.isin(geom[:, 1], ids.object_geoms))
+                    | (np.isin(geom[:, 1], fin) & np.isin(geom[:, 0], ids.object_geoms)))
+            np.minimum.at(best[:, side], world[pair], dist[pair])
+        return best
+
+    def clearance(self, lines: wp.array, obj: wp.array, left: wp.array, right: wp.array) -> np.ndarray:
+        """[W, 2] what each jaw must open, less the margin (``_clearance``), for the object where
+        it lies now (after ``kinematics``); -1e30 where no line meets both."""
+        need = wp.full((self.nworld, 2), -1.0e30, dtype=float, device=self.device)
+        wp.launch(_clearance, dim=(self.nworld, lines.shape[0]), device=self.device,
+                  inputs=[self.m.geom_dataid, self.planes, self.nplane, obj, left, right,
+                          self.d.geom_xpos, self.d.geom_xmat, self.finger_xpos, self.finger_xmat,
+                          lines, need])
+        return need.numpy()
 
     def set_state(self, **arrays):
         for k, v in arrays.items():
@@ -259,8 +405,12 @@ class WarpGraspSimulator:
     """
 
     def __init__(self, cfg: Config, *, devices: list[str] | None = None, worlds: int | None = None,
-                 threads: int | None = None):
+                 threads: int | None = None, approach: str = "device"):
+        if approach not in APPROACHES:
+            raise ValueError(f"approach {approach!r}: one of {APPROACHES}")
         self.cfg = cfg
+        self.approach = approach
+        self._device_consts: dict = {}
         self.devices = devices or local_devices()
         self.worlds = worlds
         self.threads = threads
@@ -357,6 +507,37 @@ class WarpGraspSimulator:
         return (rise >= s.success_min_height) & touching, rise
 
     # ---------------------------------------------------------------- programs
+    def _device_openings(self, ch: _Chunk) -> np.ndarray:
+        """[W, 2] jaw openings by ``scene.JawOpener``'s rule, run on the chunk's device: clear
+        of the object by ``open_margin`` along the closing axis on every line, clipped to the
+        joint range, the lower limit where a jaw's finger meets no line of the object; then
+        opened further wherever a finger is still nearer the object than half the margin."""
+        ids, s = self.ids, self.cfg.sim
+        dev = ch.device
+        key = dev
+        if key not in self._device_consts:
+            as_int = lambda a: wp.array(np.asarray(a, np.int32), dtype=int, device=dev)  # noqa: E731
+            self._device_consts[key] = (
+                wp.array(self.opener_lines.astype(np.float32), dtype=wp.vec2, device=dev),
+                as_int(ids.object_geoms), as_int(ids.finger_geoms[0]), as_int(ids.finger_geoms[1]))
+        need = ch.clearance(*self._device_consts[key])
+        low, high = ids.jaw_range[:, 0], ids.jaw_range[:, 1]
+        margin = s.open_margin
+        openings = np.where(need > -1.0e29, need + margin, low)
+        openings = np.clip(openings, low, high)
+        # JawOpener's back-off: lines 1 mm apart can miss a thin spike, and an imprint's rim can
+        # come closer sideways than along the lines; open by what the exact distance lacks
+        q = ch.get("qpos")
+        for _ in range(8):
+            q[:, ids.jaw_qpos] = openings
+            ch.set_state(qpos=q)
+            lack = margin / 2 - ch.finger_distance(ids, margin)
+            more = (lack > 0) & (openings < high)
+            if not more.any():
+                break
+            openings = np.where(more, np.minimum(openings + lack + margin / 2, high), openings)
+        return openings
+
     def _grasp(self, models, table, which, yaws, openers):
         """Grasps of candidates ``which`` [W] at ``yaws`` [W]: (held, rise, bad, state, z)."""
         ids, s = self.ids, self.cfg.sim
@@ -370,24 +551,31 @@ class WarpGraspSimulator:
         ctrl = np.zeros((n, models[0].nu))
         ctrl[:, ids.grip_act] = high
         for sl, ch in chunks:
+            if self.approach == "device":
+                ch.keep_finger_poses(qpos[sl], ids.jaw_qpos)
             ch.set_state(qpos=qpos[sl], qvel=np.zeros((sl.stop - sl.start, models[0].nv)),
                          ctrl=ctrl[sl])
         bad = np.zeros(n, bool)
         self._steps(chunks, self.n_settle, bad)
-        # approach: the CPU backend's own opening rule, from each world's settled pose
+        # approach: JawOpener's rule (on the device, or JawOpener itself), from each world's
+        # settled pose
         t = time.perf_counter()
         z_start = np.empty(n)
         for sl, ch in chunks:
+            ch.kinematics()
             q = ch.get("qpos")
             z_start[sl] = ch.get("xipos")[:, ids.object_body, 2]
 
-            def opening(w, q=q, start=sl.start):
-                opener, data = openers(which[start + w])
-                data.qpos[:] = q[w]
-                return opener(data, s.open_margin)
+            if self.approach == "device":
+                openings = self._device_openings(ch)
+            else:
+                def opening(w, q=q, start=sl.start):
+                    opener, data = openers(which[start + w])
+                    data.qpos[:] = q[w]
+                    return opener(data, s.open_margin)
 
-            with ThreadPoolExecutor(self.threads) as pool:
-                openings = np.stack(list(pool.map(opening, range(len(q)))))
+                with ThreadPoolExecutor(self.threads) as pool:
+                    openings = np.stack(list(pool.map(opening, range(len(q)))))
             q[:, ids.jaw_qpos] = openings
             qvel = ch.get("qvel")
             qvel[:, ids.jaw_dof] = 0.0
@@ -428,26 +616,32 @@ class WarpGraspSimulator:
         held, rise = self._held(chunks, z_start)
         return held & ~bad, rise, bad
 
-    def run(self, models: list[mujoco.MjModel]) -> dict:
-        """The 11 trials of every model (``scene.build_model(..., pad_collides=True)``, one
-        layout).  Returns dict(outcome [N, 11] uint8, unstable [N] (trials failed by an
-        exploding state or an overflowed buffer), steps [N] (physics steps per candidate),
-        compile_seconds, step_seconds (stepping after the first step), world_steps,
-        approach_seconds (the openings, computed on the host), devices,
-        overflowed (worlds failed by a full buffer: a warning is logged), peak_pairs (broad-phase
-        pairs per world, most in one chunk), peak_rows)."""
-        if self.cfg.sim.push_point != "com":
-            raise ValueError("the warp backend pushes at the centre of mass; push_point="
-                             "'origin' is plain MuJoCo's (backend='mujoco')")
+    def prepare(self, models: list[mujoco.MjModel]) -> MeshTable:
+        """Check that the models share one layout, look up its ids, and return their mesh
+        table."""
         tmpl = models[0]
         for m in models:
             if m.ngeom != tmpl.ngeom or m.nmesh != tmpl.nmesh or m.nq != tmpl.nq:
                 raise ValueError("candidate model does not share the first one's layout")
         self.ids = scene_ids(tmpl)
+        self.opener_lines = JawOpener(tmpl, self.ids, self.cfg).lines  # the CPU rule's lines
         self._speed_dofs = np.concatenate([self.ids.jaw_dof, [tmpl.jnt_dofadr[
             tmpl.joint("lift").id]]]).astype(np.int64)
+        return MeshTable.of(models)
+
+    def run(self, models: list[mujoco.MjModel]) -> dict:
+        """The 11 trials of every model (``scene.build_model(..., pad_collides=True)``, one
+        layout).  Returns dict(outcome [N, 11] uint8, unstable [N] (trials failed by an
+        exploding state or an overflowed buffer), steps [N] (physics steps per candidate),
+        compile_seconds, step_seconds (stepping after the first step), world_steps,
+        approach_seconds (computing the openings), devices,
+        overflowed (worlds failed by a full buffer: a warning is logged), peak_pairs (broad-phase
+        pairs per world, most in one chunk), peak_rows)."""
+        if self.cfg.sim.push_point != "com":
+            raise ValueError("the warp backend pushes at the centre of mass; push_point="
+                             "'origin' is plain MuJoCo's (backend='mujoco')")
+        table = self.prepare(models)
         s = self.cfg.sim
-        table = MeshTable.of(models)
         host: dict = {}
 
         def openers(c):
