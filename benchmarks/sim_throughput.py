@@ -280,7 +280,7 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
         row = dict(batch=size, compile_s=compile_s, run_s=run_s, evals_per_s=size / run_s,
                    env_steps_per_s=float(res["steps"].sum()) / run_s,
                    grasp_rate=float(res["outcome"][:, 0].mean()), agreement_with_mujoco=agree,
-                   host_approach_s=res.get("approach_seconds"))
+                   approach_s=res.get("approach_seconds"))
         out[f"{backend}_rows"].append(row)
         print(f"{size:6d} {compile_s:9.1f} {run_s:7.1f} {row['evals_per_s']:8.2f} "
               f"{row['env_steps_per_s']:11.0f} {row['grasp_rate']:6.2f} {agree:6.3f}", flush=True)
