@@ -29,8 +29,12 @@ carry a warm cache to a bare machine, or the first step spends minutes in coacd.
 
 A bare GPU machine needs the project's dependencies importable.  The device machine of this
 project has JAX, flax, optax, orbax, scipy, scikit-image, h5py and tqdm; carry wheels (Python
-3.12, manylinux x86-64) of mujoco 3.17.0, mujoco-mjx 3.17.0, mujoco-warp 3.17.0, warp-lang 1.19,
-trimesh, coacd and the project itself, as the device README says.
+3.12, manylinux x86-64) of mujoco 3.17.0 (27 MB), mujoco-mjx 3.17.0 (7 MB), mujoco-warp 3.17.0
+(2 MB), warp-lang 1.19.0, trimesh and coacd (3 MB), and put the checkout on PYTHONPATH, as the
+device README says.  warp-lang's wheel is 149 MB (1.15-1.18: 149-167 MB), over the 64 MiB a call
+may carry: ``split -b 60M`` it, carry one part per call while the machine stays warm (30 s
+between calls), ``cat`` the parts together there and install; or run the check without warp
+(``--only mjx training``).
 """
 
 from __future__ import annotations

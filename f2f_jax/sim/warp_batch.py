@@ -92,9 +92,9 @@ _COUNTED = {"mesh_vert": "nmeshvert", "mesh_face": "nmeshface", "mesh_normal": "
 # default-config grasps of builtin objects (more contacts than plain MuJoCo keeps).
 CONTACTS_PER_WORLD = 512
 ROWS_PER_WORLD = 1024
-# Device memory per world: the Model and Data arrays take 0.3 MB per world (measured on warp's
-# CPU device, default layout, the buffers above, one candidate per world); the step's collision
-# buffers come on top.  3 MB is a guess with room until it is measured on a GPU; chunks keep
+# Device memory per world: the Model and Data arrays took 0.3 MB per world (measured on warp's
+# CPU device, default layout, one candidate per world, with 320 contact slots and 400 rows; the
+# buffers above take more); the step's collision buffers come on top.  3 MB is a guess with room until it is measured on a GPU; chunks keep
 # within 60% of a device's memory.
 BYTES_PER_WORLD = 3 * 2**20
 # Where the approach's openings are computed: "device" (``scene.JawOpener``'s rule on the
@@ -111,11 +111,6 @@ _LOST = int(_OT.NEFC | _OT.NJMAX_NNZ | _OT.BROADPHASE | _OT.NARROWPHASE | _OT.CC
 # Devices whose kernels this process has compiled (loaded from warp's disk cache, or built):
 # the first step on each is timed as compiling.
 _WARM_DEVICES: set = set()
-
-
-def default_device() -> str:
-    """"cuda:0" where warp sees a GPU, else "cpu"."""
-    return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
 
 
 def local_devices() -> list[str]:
