@@ -1,4 +1,5 @@
-"""The statistics, argument checks and perturbed fingers of benchmarks/sim_agreement.py."""
+"""The statistics, argument checks and perturbed fingers of benchmarks/sim_agreement.py, and the
+argument checks of the other simulator benchmarks (sim_throughput, mjx_contacts, gpu_check)."""
 
 import importlib
 
@@ -81,6 +82,8 @@ def test_inconsistent_inputs_raise():
     ["--presets", "fast", "bogus"],
     ["--presets", "fast"],
     ["--objects", "/nonexistent/meshes"],
+    ["--backends", "warp", "bullet"],
+    ["--hull-vertices", "3"],
 ])
 def test_bad_arguments_exit_2(argv, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -119,3 +122,19 @@ def test_gpu_check_refuses_a_machine_without_a_gpu_unless_asked(monkeypatch, cap
     names = [name for name, _, _ in gpu_check.plan(gpu_check.argparse.Namespace(
         tiny=True, sizes=[2], throughput_s=1, mjx_s=1, agreement_s=1, training_s=1))]
     assert names == ["throughput", "mjx", "agreement", "training"]
+
+
+@pytest.mark.parametrize("argv", [["--backends", "mujoco,bullet"], ["--backends", ","],
+                                  ["--batch-sizes", "0"]])
+def test_sim_throughput_refuses_unknown_backends_before_any_work(argv, capsys):
+    throughput = importlib.import_module("benchmarks.sim_throughput")
+    with pytest.raises(SystemExit) as exc:
+        throughput.main(argv)
+    assert exc.value.code == 2 and "--backends" in capsys.readouterr().err
+
+
+def test_mjx_contacts_refuses_pieces_below_a_tetrahedron(capsys):
+    contacts = importlib.import_module("benchmarks.mjx_contacts")
+    with pytest.raises(SystemExit) as exc:
+        contacts.main(["--vertices", "32", "3"])
+    assert exc.value.code == 2 and "--vertices" in capsys.readouterr().err
