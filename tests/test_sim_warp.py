@@ -62,8 +62,7 @@ def test_mesh_table_keeps_every_candidates_meshes(wb, sphere_models):
             n = 2 + 2 * m.mesh_vertnum[i]  # the graph's header and per-vertex tables
             np.testing.assert_array_equal(f["mesh_graph"][gadr: gadr + n],
                                           m.mesh_graph[m.mesh_graphadr[i]: m.mesh_graphadr[i] + n])
-    fields = wb.world_fields(sphere_models, table, np.array([1, 0, 1]))
-    ids = fields["geom_dataid"]
+    ids = wb.candidate_fields(sphere_models, table)["geom_dataid"][np.array([1, 0, 1])]
     assert ids.shape == (3, sphere_models[0].ngeom)
     # world 1 is candidate 0: its real meshes keep their ids; worlds 0 and 2 read candidate 1's
     mesh = np.asarray(sphere_models[0].geom_dataid) >= 0
@@ -87,7 +86,7 @@ def test_device_openings_follow_the_host_rule(wb, sphere_models, tiny_cfg):
     qpos = np.stack([np.array(sphere_models[c].qpos0) for c in which])
     for w, yaw in enumerate(yaws):
         qpos[w, ids.object_qpos + 3: ids.object_qpos + 7] = object_quat(yaw)
-    ch = wb._Chunk(sphere_models[0], table, wb.world_fields(sphere_models, table, which), "cpu")
+    ch = wb._Chunk(sphere_models[0], table, {k: v[which] for k, v in sim.fields.items()}, "cpu")
     ch.keep_finger_poses(qpos, ids.jaw_qpos)
     ch.set_state(qpos=qpos)
     ch.kinematics()

@@ -255,19 +255,26 @@ def _face_planes(f: dict) -> np.ndarray:
     return out
 
 
-def world_fields(models: list[mujoco.MjModel], table: MeshTable, which: np.ndarray) -> dict:
-    """{field: [W, ...]} of WORLD_FIELDS for worlds of candidates ``which`` [W] (indices into
-    ``models``, the same order as ``table``)."""
+def candidate_fields(models: list[mujoco.MjModel], table: MeshTable) -> dict:
+    """{field: [N, ...]} of WORLD_FIELDS, one row per candidate of ``models`` (the order of
+    ``table``): a world of candidate c takes row c.  ``geom_dataid`` points into the table;
+    build_model's empty slots (invisible placeholders) get -1."""
     per = []
     for c, m in enumerate(models):
         dataid = np.array(m.geom_dataid)
-        placeholder = np.asarray(m.geom_rgba)[:, 3] == 0.0  # build_model's empty slots
+        placeholder = np.asarray(m.geom_rgba)[:, 3] == 0.0
         mesh = dataid >= 0
         dataid = np.where(mesh, dataid + table.offset[c], dataid)
         dataid[mesh & placeholder] = -1
         per.append({k: (dataid if k == "geom_dataid" else np.array(getattr(m, k)))
                     for k in WORLD_FIELDS})
-    return {k: np.stack([per[c][k] for c in which]) for k in WORLD_FIELDS}
+    return {k: np.stack([row[k] for row in per]) for k in WORLD_FIELDS}
+
+
+def _finger_object(geom: np.ndarray, fingers, obj) -> np.ndarray:
+    """[C] bool: contacts (geom pairs [C, 2]) between one of ``fingers`` and one of ``obj``."""
+    return ((np.isin(geom[:, 0], fingers) & np.isin(geom[:, 1], obj))
+            | (np.isin(geom[:, 1], fingers) & np.isin(geom[:, 0], obj)))
 
 
 class _Chunk:
@@ -294,6 +301,7 @@ class _Chunk:
             self.planes = wp.array(table.planes.astype(np.float32), dtype=wp.vec4)
             self.nplane = wp.array(table.fields["mesh_polynum"].astype(np.int32), dtype=int)
             self.finger_xpos = self.finger_xmat = None
+            self._reach = None  # (reach, the fingers' margins for finger_distance's pass)
 
     def kinematics(self):
         """Positions of every body and geom for the current qpos (a step leaves those of the
@@ -317,27 +325,22 @@ class _Chunk:
         current qpos, where it is below ``reach`` (``reach`` elsewhere), as
         ``scene.finger_object_distance``: one collision pass with the fingers' margin set to
         ``reach``, so pairs closer than that report their distance as a contact's."""
-        n = self.nworld
         own = self.m.geom_margin
-        margin = np.zeros(own.shape, np.float32)
-        fingers = ids.all_finger_geoms
-        margin[:, fingers] = reach
-        self.m.geom_margin = wp.array(margin, dtype=own.dtype, device=self.device)
+        if self._reach is None or self._reach[0] != reach:
+            margin = np.zeros(own.shape, np.float32)
+            margin[:, ids.all_finger_geoms] = reach
+            self._reach = (reach, wp.array(margin, dtype=own.dtype, device=self.device))
+        self.m.geom_margin = self._reach[1]
         try:
             with wp.ScopedDevice(self.device):
                 mjw.kinematics(self.m, self.d)
                 mjw.collision(self.m, self.d)
         finally:
             self.m.geom_margin = own
-        best = np.full((n, 2), reach)
-        nacon = int(self.get("nacon")[0])
-        c = self.d.contact
-        geom, dist = c.geom.numpy()[:nacon], c.dist.numpy()[:nacon]
-        world = c.worldid.numpy()[:nacon]
+        best = np.full((self.nworld, 2), reach)
+        geom, dist, world = self.contacts()
         for side in (0, 1):
-            fin = ids.finger_geoms[side]
-            pair = ((np.isin(geom[:, 0], fin) & np.isin(geom[:, 1], ids.object_geoms))
-                    | (np.isin(geom[:, 1], fin) & np.isin(geom[:, 0], ids.object_geoms)))
+            pair = _finger_object(geom, ids.finger_geoms[side], ids.object_geoms)
             np.minimum.at(best[:, side], world[pair], dist[pair])
         return best
 
@@ -358,6 +361,12 @@ class _Chunk:
 
     def get(self, name: str) -> np.ndarray:
         return getattr(self.d, name).numpy()
+
+    def contacts(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The contacts of the last collision pass: geom pairs [C, 2], distances [C], worlds [C]."""
+        nacon = int(self.get("nacon")[0])
+        c = self.d.contact
+        return c.geom.numpy()[:nacon], c.dist.numpy()[:nacon], c.worldid.numpy()[:nacon]
 
     def set_column(self, name: str, col: int, value: float):
         wp.launch(_set_column, dim=self.nworld, inputs=[getattr(self.d, name), col, float(value)],
@@ -426,7 +435,8 @@ class WarpGraspSimulator:
 
     # ---------------------------------------------------------------- rounds
     def _chunks(self, models, table, which):
-        """Split worlds ``which`` over the devices in chunks; returns [(slice, _Chunk)]."""
+        """Split worlds ``which`` (candidate indices) over the devices in chunks; returns
+        [(slice, _Chunk)]."""
         out, start = [], 0
         per = [self.worlds or default_worlds(dev) for dev in self.devices]
         n = len(which)
@@ -435,7 +445,7 @@ class WarpGraspSimulator:
                 if start >= n:
                     break
                 stop = min(n, start + size)
-                fields = world_fields(models, table, which[start:stop])
+                fields = {k: v[which[start:stop]] for k, v in self.fields.items()}
                 out.append((slice(start, stop), _Chunk(models[0], table, fields, dev)))
                 start = stop
         return out
@@ -488,15 +498,10 @@ class WarpGraspSimulator:
         n = len(z_start)
         rise = np.zeros(n)
         touching = np.zeros(n, bool)
-        obj, fin = ids.object_geoms, ids.all_finger_geoms
         for sl, ch in chunks:
             rise[sl] = ch.get("xipos")[:, ids.object_body, 2] - z_start[sl]
-            nacon = int(ch.get("nacon")[0])
-            c = ch.d.contact
-            geom, dist = c.geom.numpy()[:nacon], c.dist.numpy()[:nacon]
-            world = c.worldid.numpy()[:nacon]
-            pair = ((np.isin(geom[:, 0], obj) & np.isin(geom[:, 1], fin))
-                    | (np.isin(geom[:, 1], obj) & np.isin(geom[:, 0], fin)))
+            geom, dist, world = ch.contacts()
+            pair = _finger_object(geom, ids.all_finger_geoms, ids.object_geoms)
             hit = world[pair & (dist < 0)]
             touching[sl.start + np.unique(hit)] = True
         return (rise >= s.success_min_height) & touching, rise
@@ -612,8 +617,8 @@ class WarpGraspSimulator:
         return held & ~bad, rise, bad
 
     def prepare(self, models: list[mujoco.MjModel]) -> MeshTable:
-        """Check that the models share one layout, look up its ids, and return their mesh
-        table."""
+        """Check that the models share one layout, look up its ids and each candidate's
+        WORLD_FIELDS (``self.fields``), and return their mesh table."""
         tmpl = models[0]
         for m in models:
             if m.ngeom != tmpl.ngeom or m.nmesh != tmpl.nmesh or m.nq != tmpl.nq:
@@ -622,7 +627,9 @@ class WarpGraspSimulator:
         self.opener_lines = JawOpener(tmpl, self.ids, self.cfg).lines  # the CPU rule's lines
         self._speed_dofs = np.concatenate([self.ids.jaw_dof, [tmpl.jnt_dofadr[
             tmpl.joint("lift").id]]]).astype(np.int64)
-        return MeshTable.of(models)
+        table = MeshTable.of(models)
+        self.fields = candidate_fields(models, table)
+        return table
 
     def run(self, models: list[mujoco.MjModel]) -> dict:
         """The 11 trials of every model (``scene.build_model(..., pad_collides=True)``, one
