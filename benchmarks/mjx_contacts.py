@@ -38,6 +38,7 @@ from f2f_jax.geometry import imprint_fingers  # noqa: E402
 from f2f_jax.geometry.hulls import finger_hulls, with_max_vertices  # noqa: E402
 from f2f_jax.geometry.pieces import object_pieces_many  # noqa: E402
 from f2f_jax.sim import mjx_batch  # noqa: E402
+from f2f_jax.sim.mujoco_cpu import batched_model_options  # noqa: E402
 from f2f_jax.sim.protocol import GraspRunner  # noqa: E402
 from f2f_jax.sim.scene import build_model  # noqa: E402
 from sim_agreement import load_objects  # noqa: E402
@@ -113,9 +114,7 @@ def main(argv=None) -> int:
     for v in args.vertices:
         cfg = base.replace(geometry=dataclasses.replace(base.geometry, hull_vertices=v))
         models = [build_model(with_max_vertices(h, v), finger_hulls(left, cfg),
-                              finger_hulls(right, cfg), cfg, pad_collides=True,
-                              max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
-                              max_contact_points=mjx_batch.MAX_CONTACT_POINTS)
+                              finger_hulls(right, cfg), cfg, **batched_model_options("mjx"))
                   for h, (left, right) in zip(pieces, pairs)]
         states, held, cpu_rate = held_states(models, cfg)
         for size in args.batch:

@@ -242,21 +242,18 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
     ``json_path`` after every row."""
     from f2f_jax.sim.scene import build_model
 
+    from f2f_jax.sim.mujoco_cpu import batched_model_options
+
+    batched = importlib.import_module(f"f2f_jax.sim.{backend}_batch")
     if backend == "mjx":
         import jax
 
-        from f2f_jax.sim import mjx_batch as batched
-
-        caps = dict(max_geom_pairs=batched.MAX_GEOM_PAIRS,
-                    max_contact_points=batched.MAX_CONTACT_POINTS)
         device = str(jax.devices()[0].device_kind)
     else:
-        from f2f_jax.sim import warp_batch as batched
-
-        caps = {}
         device = ", ".join(batched.local_devices())
-    models = [build_model(h, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg,
-                          pad_collides=True, **caps) for h, left, right in zip(pieces, lefts, rights)]
+    options = batched_model_options(backend)
+    models = [build_model(h, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg, **options)
+              for h, left, right in zip(pieces, lefts, rights)]
     print(f"\n{backend} on {device}: {len(models)} distinct imprint triples tiled to each batch size, "
           "reference phases, all 11 trials")
     print(f"{'batch':>6s} {'compile s':>9s} {'run s':>7s} {'evals/s':>8s} {'env steps/s':>11s} "

@@ -367,3 +367,22 @@ def test_many_objects_in_worker_processes_match_one_by_one(sphere_tsdf, tmp_path
         ref = object_hulls(vol, cache_dir=tmp_path / "b")
         assert np.array_equal(ref.vertices, h.vertices) and np.array_equal(ref.counts, h.counts)
     assert len(list((tmp_path / "a").glob("*.npz"))) == 2  # both written to the cache by workers
+
+
+def test_with_max_vertices_keeps_slots_and_shrinks_each_piece_inside_itself():
+    from f2f_jax.geometry.hulls import Hulls, pad_hulls, points_in_hulls, with_max_vertices
+
+    rng = np.random.default_rng(3)
+    ball = rng.normal(size=(200, 3))
+    ball /= np.linalg.norm(ball, axis=1, keepdims=True)
+    pieces = [0.01 * ball, 0.01 * ball + [0.03, 0, 0]]
+    full = pad_hulls(pieces, 4, 32)
+    full = Hulls(full.vertices[[0, 2, 1, 3]], full.counts[[0, 2, 1, 3]])  # a gap in slot 1
+    coarse = with_max_vertices(full, 8)
+    assert coarse.vertices.shape == (4, 8, 3)
+    assert coarse.counts.tolist() == [8, 0, 8, 0]
+    # every coarse vertex lies inside the piece it came from
+    assert points_in_hulls(full, coarse.vertices[0, :8], tol=1e-7).all()
+    assert points_in_hulls(full, coarse.vertices[2, :8], tol=1e-7).all()
+    with pytest.raises(ValueError, match="max_vertices"):
+        with_max_vertices(full, 3)

@@ -194,18 +194,20 @@ def pad_hulls(pieces: list[np.ndarray], max_pieces: int, max_vertices: int) -> H
 
 def with_max_vertices(hulls: Hulls, max_vertices: int) -> Hulls:
     """The same pieces with at most ``max_vertices`` vertices each (``reduce_vertices``: each
-    shrinks inside its hull), in a ``[K, max_vertices]`` layout: a coarser copy of cached pieces
-    without decomposing the shape again."""
+    shrinks inside its hull), each in its own slot of a ``[K, max_vertices]`` layout (the scene
+    names geoms by slot): a coarser copy of cached pieces without decomposing the shape again."""
     if max_vertices < 4:
         raise ValueError(f"max_vertices must be >= 4, got {max_vertices}")
-    out = [reduce_vertices(p, max_vertices) if len(p) > max_vertices else np.asarray(p, np.float64)
-           for p in hulls.pieces()]
-    slots = np.nonzero(hulls.valid)[0]
-    packed = _pack(out, hulls.max_pieces, max_vertices)
-    # keep every piece in its own slot (the scene names geoms by slot)
-    vertices = np.zeros_like(packed.vertices)
-    counts = np.zeros_like(packed.counts)
-    vertices[slots], counts[slots] = packed.vertices[: len(slots)], packed.counts[: len(slots)]
+    vertices = np.zeros((hulls.max_pieces, max_vertices, 3), np.float32)
+    counts = np.zeros(hulls.max_pieces, np.int32)
+    for k, n in enumerate(hulls.counts):
+        if n == 0:
+            continue
+        piece = hulls.vertices[k, :n]
+        verts = reduce_vertices(piece, max_vertices) if n > max_vertices else piece
+        vertices[k, : len(verts)] = verts
+        vertices[k, len(verts):] = verts[0]
+        counts[k] = len(verts)
     return Hulls(vertices, counts)
 
 

@@ -264,19 +264,24 @@ def _run_threads(objs, lefts, rights, todo, cfg, results, *, threads, show, hull
             results[i] = res
 
 
+def batched_model_options(backend: str) -> dict:
+    """``scene.build_model`` keywords of a batched backend's candidate models ("mjx" or
+    "warp"): one layout for all (placeholders that collide), and MJX's contact caps."""
+    options = dict(pad_collides=True)
+    if backend == "mjx":
+        from f2f_jax.sim import mjx_batch
+
+        options.update(max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
+                       max_contact_points=mjx_batch.MAX_CONTACT_POINTS)
+    return options
+
+
 def _evaluate_batched(backend, objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir,
                       return_info, progress):
     """evaluate(..., backend="mjx" | "warp"): models built here on the CPU, one layout, trials
     batched in MJX (``sim.mjx_batch``) or MuJoCo Warp (``sim.warp_batch``)."""
-    if backend == "mjx":
-        from f2f_jax.sim import mjx_batch as batched
-
-        caps = dict(max_geom_pairs=batched.MAX_GEOM_PAIRS,
-                    max_contact_points=batched.MAX_CONTACT_POINTS)
-    else:
-        from f2f_jax.sim import warp_batch as batched
-
-        caps = {}
+    batched = importlib.import_module(f"f2f_jax.sim.{backend}_batch")
+    options = batched_model_options(backend)
 
     start = time.perf_counter()
     n, n_trials = len(objs), cfg.sim.n_trials
@@ -296,8 +301,7 @@ def _evaluate_batched(backend, objs, lefts, rights, feasible, cfg, *, object_hul
             if isinstance(hulls, str):
                 raise F2FError(f"object hulls: {hulls}")
             models.append(build_model(hulls, finger_hulls(lefts[i], cfg),
-                                      finger_hulls(rights[i], cfg), cfg, pad_collides=True,
-                                      **caps))
+                                      finger_hulls(rights[i], cfg), cfg, **options))
             index.append(i)
         except (F2FError, ValueError) as exc:
             errors[int(i)] = f"{type(exc).__name__}: {exc}"
