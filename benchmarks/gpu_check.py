@@ -60,12 +60,13 @@ def device_info() -> dict:
         out = subprocess.run(["nvidia-smi", "--query-gpu=name,memory.total,driver_version",
                               "--format=csv,noheader"], capture_output=True, text=True)
         info["nvidia_smi"] = out.stdout.strip().splitlines()
-    try:
-        import jax
-
-        info["jax"] = [f"{d.platform}:{d.device_kind}" for d in jax.devices()]
-    except Exception as exc:  # noqa: BLE001 - reported, not fatal
-        info["jax"] = f"unavailable: {exc}"
+    # JAX asked in a child process: in this one it would hold most of the GPU's memory
+    # (its preallocation) through every step
+    out = subprocess.run([sys.executable, "-c", "import jax; print('\\n'.join(f'{d.platform}:"
+                          "{d.device_kind}' for d in jax.devices()))"],
+                         capture_output=True, text=True)
+    info["jax"] = (out.stdout.split() if out.returncode == 0
+                   else f"unavailable: {out.stderr.strip()[-300:]}")
     try:
         from f2f_jax.sim import warp_batch
 
@@ -123,6 +124,9 @@ def main(argv=None) -> int:
     print(f"device: {json.dumps(info)}", flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "MPLBACKEND": "Agg"}
+    # the warp steps share their process with JAX (imported by the project): JAX must not take
+    # 75% of the GPU up front, as it does by default, or warp's worlds would not fit
+    warp_env = {**env, "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
     start_all = time.perf_counter()
     for name, command, limit in plan(args):
         if args.only and name not in args.only:
@@ -133,7 +137,8 @@ def main(argv=None) -> int:
             print(f"\n== {name} (<= {limit} s): {' '.join(command[1:])}", flush=True)
             try:
                 proc = subprocess.run([*command, "--json", str(out_json)], capture_output=True,
-                                      text=True, timeout=limit, env=env)
+                                      text=True, timeout=limit,
+                                      env=warp_env if "warp" in " ".join(command) else env)
                 rc, output = proc.returncode, proc.stdout + proc.stderr
             except subprocess.TimeoutExpired as exc:
                 rc = "timeout"
