@@ -314,10 +314,20 @@ def finger_object_distance(model: mujoco.MjModel, data: mujoco.MjData, ids: Scen
                            side: int, distmax: float = 0.2) -> float:
     """Smallest signed distance (m) between one finger's pieces and the object's, at the current
     kinematics (``mj_kinematics`` must have run).  Negative: they intersect."""
+    fingers, objects = ids.finger_geoms[side], ids.object_geoms
+    if len(fingers) == 0 or len(objects) == 0:
+        return distmax
+    # pairs nearest first by their bounding spheres, whose gap no pair's distance is below:
+    # once that gap reaches the best distance found, no later pair can beat it
+    gap = (np.linalg.norm(data.geom_xpos[fingers][:, None] - data.geom_xpos[objects][None], axis=2)
+           - model.geom_rbound[fingers][:, None] - model.geom_rbound[objects][None])
+    order = np.argsort(gap, axis=None)
     best = distmax
-    for fg in ids.finger_geoms[side]:
-        for og in ids.object_geoms:
-            best = min(best, mujoco.mj_geomDistance(model, data, int(fg), int(og), distmax, None))
+    for flat in order:
+        if gap.flat[flat] >= best:
+            break
+        fg, og = fingers[flat // len(objects)], objects[flat % len(objects)]
+        best = min(best, mujoco.mj_geomDistance(model, data, int(fg), int(og), distmax, None))
     return best
 
 
@@ -355,40 +365,59 @@ class JawOpener:
         zs = np.arange(z0 - h, z0 + h + spacing / 2, spacing)
         yy, zz = np.meshgrid(ys, zs, indexing="ij")
         self.lines = np.stack([yy.ravel(), zz.ravel()], 1)  # [L, 2] (y, z) in world
+        self._ys, self._zs, self._spacing = ys, zs, spacing
         self._local = {int(gid): self._local_planes(gid)
                        for gid in np.concatenate([ids.all_finger_geoms, ids.object_geoms])}
         self._finger_reach: list[tuple[np.ndarray, np.ndarray]] | None = None
 
-    def _local_planes(self, geom: int) -> np.ndarray:
-        """[F, 4] facet planes (n, d) with n . p + d <= 0 inside, in the geom's frame."""
+    def _local_planes(self, geom: int) -> tuple[np.ndarray, np.ndarray]:
+        """([F, 4] facet planes (n, d) with n . p + d <= 0 inside, [V, 3] hull vertices), in the
+        geom's frame."""
         verts = _geom_local_vertices(self.model, geom)
         try:
-            return ConvexHull(verts).equations
+            hull = ConvexHull(verts)
         except (QhullError, ValueError):
             raise DecompositionError(f"geom {geom}: its vertices span no volume") from None
+        return hull.equations, verts[hull.vertices]
+
+    def _window(self, lo: float, hi: float, axis: np.ndarray) -> slice:
+        """The lines of one grid axis whose coordinate lies in [lo, hi] (a little wider)."""
+        pad = 1e-9 + 1e-6 * self._spacing
+        start = int(np.searchsorted(axis, lo - pad, side="left"))
+        stop = int(np.searchsorted(axis, hi + pad, side="right"))
+        return slice(start, stop)
 
     def _intervals(self, data: mujoco.MjData, geoms) -> tuple[np.ndarray, np.ndarray]:
         """Union bounds along x of the pieces on every line: (lo [L], hi [L]); +inf / -inf where
-        a line misses all of them."""
-        lo = np.full(len(self.lines), np.inf)
-        hi = np.full(len(self.lines), -np.inf)
-        y, z = self.lines[:, 0], self.lines[:, 1]
+        a line misses all of them.  Each piece is intersected only with the lines inside its
+        (y, z) bounding box: a line outside it cannot meet the piece."""
+        ny, nz = len(self._ys), len(self._zs)
+        lo = np.full((ny, nz), np.inf)
+        hi = np.full((ny, nz), -np.inf)
         for gid in geoms:
-            planes = self._local[int(gid)]
+            planes, verts = self._local[int(gid)]
             rot = data.geom_xmat[gid].reshape(3, 3)
+            world = verts @ rot.T + data.geom_xpos[gid]
+            wy = self._window(world[:, 1].min(), world[:, 1].max(), self._ys)
+            wz = self._window(world[:, 2].min(), world[:, 2].max(), self._zs)
+            if wy.start >= wy.stop or wz.start >= wz.stop:
+                continue
+            y = self._ys[wy][:, None]  # [Y, 1]
+            z = self._zs[wz][None, :]  # [1, Z]
             n = planes[:, :3] @ rot.T  # world normals
             d = planes[:, 3] - n @ data.geom_xpos[gid]
-            c = -(d[:, None] + n[:, 1:2] * y + n[:, 2:3] * z)  # n_x x <= c on each line
-            nx = n[:, 0:1]
+            # n_x x <= c on each line: [F, Y, Z]
+            c = -(d[:, None, None] + n[:, 1, None, None] * y + n[:, 2, None, None] * z)
+            nx = n[:, 0, None, None]
             with np.errstate(divide="ignore", invalid="ignore"):
                 bound = c / nx
             upper = np.where(nx > 1e-12, bound, np.inf).min(0)
             lower = np.where(nx < -1e-12, bound, -np.inf).max(0)
             parallel_ok = np.all((np.abs(nx) > 1e-12) | (c >= 0), axis=0)
             hit = parallel_ok & (lower <= upper)
-            lo = np.where(hit, np.minimum(lo, lower), lo)
-            hi = np.where(hit, np.maximum(hi, upper), hi)
-        return lo, hi
+            lo[wy, wz] = np.where(hit, np.minimum(lo[wy, wz], lower), lo[wy, wz])
+            hi[wy, wz] = np.where(hit, np.maximum(hi[wy, wz], upper), hi[wy, wz])
+        return lo.ravel(), hi.ravel()
 
     def __call__(self, data: mujoco.MjData, margin: float) -> np.ndarray:
         """Openings [2] (m) for the object pose in ``data.qpos``; writes them into the jaws'
