@@ -5,7 +5,7 @@
 
 The same (object, left, right) triples are simulated twice with plain MuJoCo: once as configured,
 once with a physically negligible change (``--perturb``: object mass x1.01, finger friction x1.01,
-or a 1.9 ms instead of 2 ms timestep; several may be given, each a rerun).  A design whose outcome
+or a timestep 5% shorter; several may be given, each a rerun).  A design whose outcome
 flips under a 1% change in mass is decided by the solver's path, not by its shape: no fitness net
 can learn such a flip, and no backend (MJX included, ``mjx_agreement.py``) can be asked to agree
 with MuJoCo more often than MuJoCo agrees with itself.

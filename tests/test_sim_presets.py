@@ -50,12 +50,29 @@ def test_presets_set_what_they_name_and_the_configs_are_fast():
         object_pieces(np.ones((40, 40, 40), np.float32), bad)
 
 
-def test_a_run_saved_before_the_presets_loads_as_the_reference():
+def old_run_config(**sim) -> dict:
+    """The default config as a run directory saved before SimConfig.integrator existed stores
+    it: 2 ms steps, no integrator field (MuJoCo's Euler was the only one used)."""
     saved = config_to_dict(config.default())
+    del saved["sim"]["integrator"]
+    saved["sim"].update(timestep=0.002, **sim)
+    return saved
+
+
+def test_a_run_saved_before_the_presets_loads_as_the_reference():
+    saved = old_run_config()
     del saved["geometry"]["object_method"], saved["sim"]["rest_speed"]
     cfg = config_from_dict(saved)
     assert config.sim_preset_name(cfg) == "reference"
+    assert cfg.sim.integrator == "euler" and cfg.sim.timestep == 0.002
     assert config_from_dict(config_to_dict(config.default())) == config.default()
+
+
+def test_a_run_of_the_first_fast_preset_resumes_with_its_own_simulator():
+    # 2 ms Euler steps with the early exits at rest: not a preset any more, kept as saved
+    cfg = config_from_dict(old_run_config())
+    assert (cfg.sim.timestep, cfg.sim.integrator, cfg.sim.rest_speed) == (0.002, "euler", 0.002)
+    assert config.sim_preset_name(cfg) == "custom"
 
 
 def test_depth_map_reads_where_the_object_begins_and_ends_along_x(cfg):

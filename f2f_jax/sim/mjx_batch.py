@@ -397,7 +397,7 @@ class MjxGraspSimulator:
 
     def _held(self, m, d, z_start):
         # The contacts of the last step (its forward pass): a second collision pass in the
-        # program would double its compile time for a state 2 ms older.
+        # program would double its compile time for a state one step older.
         ids, s = self.ids, self.cfg.sim
         c = d._impl.contact
         g1, g2 = c.geom1, c.geom2

@@ -37,8 +37,9 @@ CHECK_EVERY = 25
 # Steps between rest checks in phases that may end at rest: the rest window is sampled this
 # often, so a swinging object passing through zero speed is not mistaken for one at rest.
 REST_CHECK_EVERY = 5
-# The lift command changes every LIFT_CHUNK steps (10 ms at 2 ms steps) along its profile.
-LIFT_CHUNK = 5
+# The lift command changes every LIFT_CHUNK_TIME seconds along its profile (5 steps of 2 ms, 2
+# of 4 ms): ``lift_chunk``.
+LIFT_CHUNK_TIME = 0.01
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 # A body's angular speed counts as the speed of a point this far (m) from its centre: the
 # object cube's half diagonal.
@@ -74,6 +75,12 @@ class TrialResult:
     def zeros(cls, n_trials: int = len(TRIAL_NAMES), error: str | None = None) -> "TrialResult":
         return cls(outcome=np.zeros(n_trials, np.uint8), trial_steps=np.zeros(n_trials, np.int64),
                    heights=np.full(n_trials, np.nan), error=error)
+
+
+def lift_chunk(cfg: Config | None = None) -> int:
+    """Steps per constant lift command: LIFT_CHUNK_TIME at the config's timestep, at least 1."""
+    s = (cfg or Config()).sim
+    return max(1, int(round(LIFT_CHUNK_TIME / s.timestep)))
 
 
 def lift_targets(cfg: Config | None = None) -> np.ndarray:
@@ -229,10 +236,11 @@ class GraspRunner:
         # The lift actuator integrates its command (a speed) into its position target: a
         # constant command per chunk moves the target exactly along the profile's chord.
         targets = lift_targets(self.cfg)
-        for i in range(0, len(targets) - 1, LIFT_CHUNK):
-            j = min(i + LIFT_CHUNK, len(targets) - 1)
+        chunk = lift_chunk(self.cfg)
+        for i in range(0, len(targets) - 1, chunk):
+            j = min(i + chunk, len(targets) - 1)
             d.ctrl[ids.lift_act] = (targets[j] - targets[i]) / ((j - i) * s.timestep)
-            self.advance(j - i, chunk=LIFT_CHUNK)
+            self.advance(j - i, chunk=chunk)
         d.ctrl[ids.lift_act] = 0.0
         self.advance(s.steps(s.hold_time), stop_below=z_start + s.success_min_height,
                      until_rest=True)
