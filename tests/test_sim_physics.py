@@ -87,6 +87,20 @@ def test_flat_tips_let_the_sphere_slip_at_mu_02_and_lift_it_at_mu_1(preset, flat
     assert ok and rise > tiny.sim.lift_height - 0.01, f"mu 1.0 must hold, rose {rise:.3f} m"
 
 
+def test_a_dropped_object_ends_the_lift_once_no_finger_can_reach_it(preset, flat_tips):
+    tiny, sphere_hulls = preset
+    lift = lambda runner: runner.data.qpos[runner.ids.lift_qpos]  # noqa: E731
+    slipping = GraspRunner(build_model(sphere_hulls, *flat_tips, tiny, friction=0.2), tiny)
+    ok, rise, _ = slipping.grasp(0.0)
+    # stopped part-way up, the fingers clear of the sphere on the floor
+    assert not ok and rise < 0.01 and lift(slipping) < tiny.sim.lift_height - 0.01
+    assert slipping.dropped(slipping.z_start + tiny.sim.success_min_height)
+    held = GraspRunner(build_model(sphere_hulls, *flat_tips, tiny, friction=1.0), tiny)
+    ok, _, _ = held.grasp(0.0)
+    assert ok and lift(held) > tiny.sim.lift_height - 0.002  # a held grasp runs the whole lift
+    assert not held.dropped(held.z_start + tiny.sim.success_min_height)
+
+
 def test_flat_tips_at_mu_05_hold_the_sphere_but_drop_it_when_pushed_down(preset, flat_tips):
     tiny, sphere_hulls = preset
     # 2 x 0.5 x 1 N = 1 N holds 0.49 N but not 0.49 N + 1.5 N

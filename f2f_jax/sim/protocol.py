@@ -13,6 +13,9 @@ Rules (DESIGN.md section 2):
   that trial as a failure and is counted in ``TrialResult.unstable``, never raised;
 * once the object is below the success height after the lift is done, nothing can raise it again
   (the gripper stands still), so that trial stops early: a failure costs few steps;
+* during the lift, once the object is below the success height, every finger is above its top
+  and it rises no faster than the gripper, no finger can meet it again: the trial stops there
+  (``GraspRunner.dropped``), in every preset, as the outcome is decided;
 * with ``SimConfig.rest_speed > 0`` the settle, close, hold and post-push hold phases also end
   early once nothing moves faster than ``rest_speed`` for ``rest_time``: an object at rest in
   the fingers with the gripper standing still stays where it is, so the rest of the hold cannot
@@ -21,6 +24,7 @@ Rules (DESIGN.md section 2):
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -44,6 +48,9 @@ _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 # A body's angular speed counts as the speed of a point this far (m) from its centre: the
 # object cube's half diagonal.
 _SPIN_RADIUS = 0.052
+# A dropped object counts as out of reach once the fingers' lowest point is this far (m) above
+# its highest point.
+DROP_CLEARANCE = 0.001
 
 
 @dataclass
@@ -117,8 +124,33 @@ class GraspRunner:
         self.steps = 0
         self.z_start = np.nan  # object centre height after settling in the last grasp (m)
         self._warnings = 0
-        self._speed_dofs = np.concatenate([self.ids.jaw_dof, [self.model.jnt_dofadr[
-            self.model.joint("lift").id]]]).astype(np.int64)
+        self._lift_dof = int(self.model.jnt_dofadr[self.model.joint("lift").id])
+        self._speed_dofs = np.concatenate([self.ids.jaw_dof, [self._lift_dof]]).astype(np.int64)
+        self._reach_setup()
+
+    def _reach_setup(self) -> None:
+        """What ``dropped`` needs: each jaw's lowest finger point below the jaw body's origin
+        (jaws only slide, so it is fixed), the object pieces' vertices in their geom frames,
+        and their furthest distance from the object's centre of mass."""
+        m = self.model
+        data = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, data)
+        mujoco.mj_comPos(m, data)
+
+        def world_vertices(gid):
+            mesh = m.geom_dataid[gid]
+            local = m.mesh_vert[m.mesh_vertadr[mesh]: m.mesh_vertadr[mesh] + m.mesh_vertnum[mesh]]
+            return local, local @ data.geom_xmat[gid].reshape(3, 3).T + data.geom_xpos[gid]
+
+        self._jaw_bodies = np.array([m.body(f"{side}_jaw").id for side in ("left", "right")])
+        self._finger_low = np.zeros(2)
+        for side, geoms in enumerate(self.ids.finger_geoms):
+            low = min((float(world_vertices(g)[1][:, 2].min()) for g in geoms), default=np.inf)
+            self._finger_low[side] = low - data.xpos[self._jaw_bodies[side], 2]
+        self._object_vertices = [(int(g), world_vertices(g)[0]) for g in self.ids.object_geoms]
+        com = data.xipos[self.ids.object_body]
+        self._object_radius = max(float(np.linalg.norm(world_vertices(g)[1] - com, axis=1).max())
+                                  for g in self.ids.object_geoms)
 
     # --- low level --------------------------------------------------------------------------
     def _warning_count(self) -> int:
@@ -127,8 +159,10 @@ class GraspRunner:
     def _finite(self) -> bool:
         """False if MuJoCo warned since the trial began or the state is not finite."""
         d = self.data
-        return (self._warning_count() == self._warnings and bool(np.all(np.isfinite(d.qpos)))
-                and bool(np.all(np.isfinite(d.qvel))))
+        # a sum is NaN or infinite when any of its terms is: one check instead of one per entry
+        # (this runs after every few steps)
+        return (self._warning_count() == self._warnings
+                and math.isfinite(float(d.qpos.sum()) + float(d.qvel.sum())))
 
     def healthy(self) -> bool:
         """False if MuJoCo warned since the trial began, the state is not finite or anything
@@ -138,10 +172,12 @@ class GraspRunner:
     def speed(self) -> float:
         """The fastest motion in the scene (m/s): the object's linear speed, its angular speed
         at ``_SPIN_RADIUS``, the jaws' and the lift's speeds."""
-        d, ids = self.data, self.ids
-        v = d.qvel[ids.object_dof: ids.object_dof + 6]
-        return max(float(np.linalg.norm(v[:3])), float(np.linalg.norm(v[3:])) * _SPIN_RADIUS,
-                   float(np.max(np.abs(d.qvel[self._speed_dofs]))))
+        d, o = self.data, self.ids.object_dof
+        # plain floats: this runs after every few steps, where numpy's per-call cost dominates
+        vx, vy, vz, wx, wy, wz = d.qvel[o: o + 6].tolist()
+        return max(math.sqrt(vx * vx + vy * vy + vz * vz),
+                   math.sqrt(wx * wx + wy * wy + wz * wz) * _SPIN_RADIUS,
+                   max(abs(v) for v in d.qvel[self._speed_dofs].tolist()))
 
     def advance(self, n: int, *, stop_below: float | None = None,
                 chunk: int = CHECK_EVERY, until_rest: bool = False) -> bool:
@@ -180,6 +216,24 @@ class GraspRunner:
 
     def object_height(self) -> float:
         return float(self.data.xipos[self.ids.object_body, 2])
+
+    def dropped(self, below: float) -> bool:
+        """True once no finger can meet the object again while the gripper rises: its centre
+        is below ``below``, it rises no faster than the gripper, and the fingers' lowest point
+        is ``DROP_CLEARANCE`` above its highest point.  Nothing else lifts it (the floor only
+        holds it up), so the trial's outcome is decided: a failure."""
+        d, ids = self.data, self.ids
+        centre = float(d.xipos[ids.object_body, 2])
+        if centre >= below or d.qvel[ids.object_dof + 2] > d.qvel[self._lift_dof]:
+            return False
+        low = float(np.min(d.xpos[self._jaw_bodies, 2] + self._finger_low))
+        if low <= centre:  # the fingers still reach below its centre: the common case
+            return False
+        if low > centre + self._object_radius + DROP_CLEARANCE:
+            return True
+        top = max(float((v @ d.geom_xmat[g].reshape(3, 3)[2] + d.geom_xpos[g, 2]).max())
+                  for g, v in self._object_vertices)
+        return low > top + DROP_CLEARANCE
 
     def held(self, z_start: float) -> tuple[bool, float]:
         """(success, height above start): lifted by success_min_height and touching a finger."""
@@ -237,13 +291,16 @@ class GraspRunner:
         # constant command per chunk moves the target exactly along the profile's chord.
         targets = lift_targets(self.cfg)
         chunk = lift_chunk(self.cfg)
+        below = z_start + s.success_min_height
         for i in range(0, len(targets) - 1, chunk):
             j = min(i + chunk, len(targets) - 1)
             d.ctrl[ids.lift_act] = (targets[j] - targets[i]) / ((j - i) * s.timestep)
             self.advance(j - i, chunk=chunk)
+            if self.dropped(below):
+                d.ctrl[ids.lift_act] = 0.0
+                return False, self.object_height() - z_start, touching
         d.ctrl[ids.lift_act] = 0.0
-        self.advance(s.steps(s.hold_time), stop_below=z_start + s.success_min_height,
-                     until_rest=True)
+        self.advance(s.steps(s.hold_time), stop_below=below, until_rest=True)
         ok, rise = self.held(z_start)
         return ok, rise, touching
 
