@@ -39,7 +39,7 @@ def _meshes():
 @pytest.fixture(scope="module")
 def triples(tiny_cfg):
     """Convex objects (one hull each: no coacd) with their imprint and WSG50 pairs, plus an
-    infeasible (empty) left finger: 9 candidates, the imprint ones mostly held."""
+    infeasible (empty) left finger: 9 candidates, the caged imprint grasps (cylinder, ball) held."""
     g = tiny_cfg.geometry
     objs, lefts, rights = [], [], []
     for mesh in _meshes().values():
@@ -55,7 +55,9 @@ def triples(tiny_cfg):
 def threaded(triples, tiny_cfg, tmp_path_factory):
     cache = tmp_path_factory.mktemp("hulls")
     out, info = sim.evaluate(*triples, cfg=tiny_cfg, threads=2, cache_dir=cache, return_info=True)
-    assert out[0::2][:4, 0].sum() >= 3, "imprint fingers should hold most convex objects"
+    # the imprints cage the cylinder and the ball; the box and the cone are held or not by how
+    # they slide (at mu 0.2 two flat faces give 0.4 N of friction for 0.49 N of weight)
+    assert out[2, 0] == 1 and out[4, 0] == 1, "imprint fingers should hold the cylinder and ball"
     return out, info
 
 
