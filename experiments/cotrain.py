@@ -133,8 +133,10 @@ def main(argv=None) -> int:
     backend = "mujoco" if args.executor == "ray" else args.backend or _default_backend()
     try:
         executor = ray_executor.executor_from_cli(args)
+        # an existing run goes on with its own simulator unless --sim-preset says otherwise
         run = CoTrainRun(args.run_dir, cfg, config_name=args.config, objects=args.objects,
-                         backend=backend, progress=not args.quiet, executor=executor)
+                         backend=backend, progress=not args.quiet, executor=executor,
+                         keep_simulator=args.sim_preset is None)
         if args.from_pretrained:
             src = str(Path(args.from_pretrained).resolve())
             meta = Path(args.run_dir) / "run.json"

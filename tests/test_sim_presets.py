@@ -7,6 +7,7 @@ beside it, and ending a phase at rest does not change a clear outcome.
 """
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -135,3 +136,24 @@ def test_ending_phases_at_rest_keeps_the_outcome_and_saves_steps(sphere_tsdf):
     out = evaluate([sphere_tsdf], [left], [right], cfg=full, preset="fast", object_hulls=hulls,
                    threads=1)
     np.testing.assert_array_equal(out[0], early.outcome)
+
+
+def test_a_run_directory_goes_on_with_the_simulator_it_was_made_with(tmp_path):
+    from f2f_jax.errors import CheckpointError
+    from f2f_jax.train.cotrain import CoTrainRun
+
+    saved = old_run_config()  # the first fast preset: 2 ms Euler
+    saved["train"].pop("cycles")
+    (tmp_path / "run.json").write_text(json.dumps(
+        {"config_name": "default", "config": saved, "objects": "builtin", "backend": "mujoco"}))
+    run = CoTrainRun(tmp_path, config.default(), config_name="default", progress=False)
+    assert (run.cfg.sim.timestep, run.cfg.sim.integrator) == (0.002, "euler")
+    assert run.cfg.net == config.default().net and run.cfg.train == config.default().train
+    # a simulator asked for explicitly (--sim-preset) is refused, naming what differs
+    with pytest.raises(CheckpointError, match="sim.timestep"):
+        CoTrainRun(tmp_path, config.default(), config_name="default", progress=False,
+                   keep_simulator=False)
+    # a run of other training settings is refused as before, whatever its simulator
+    other = config.default().replace(train=dataclasses.replace(config.default().train, lr=0.5))
+    with pytest.raises(CheckpointError, match="train.lr"):
+        CoTrainRun(tmp_path, other, config_name="default", progress=False)

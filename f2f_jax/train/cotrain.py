@@ -45,7 +45,7 @@ from f2f_jax.fileio import atomic_path
 from f2f_jax.designer import postprocess
 from f2f_jax.geometry import imprint_fingers, is_feasible, wsg50_fingers
 from f2f_jax.train import steps as S
-from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
+from f2f_jax.train.checkpoint import Checkpoints, config_from_dict, config_to_dict
 from f2f_jax.train.state import (
     init_autoencoder,
     init_fitness,
@@ -78,6 +78,12 @@ def _check_finite(values: np.ndarray, stage: str, first_step: int) -> None:
                            "lower the learning rate or check the inputs")
 
 
+def _differing_fields(old: dict, new: dict) -> list[str]:
+    """``section.field`` names whose values differ between two recorded configs."""
+    return [f"{part}.{k}" for part in new for k in new[part]
+            if old.get(part, {}).get(k) != new[part][k]]
+
+
 class _Lazy:
     """The batches of one epoch, made on the device one at a time (an epoch of paper-size batches
     would not fit in memory at once): ``make(i, index_batch)`` for each index batch."""
@@ -105,9 +111,11 @@ class CoTrainRun:
     """
 
     def __init__(self, run_dir, cfg: Config, *, config_name: str = "custom", objects: str = "builtin",
-                 backend: str = "mujoco", progress: bool = True, executor: str = "threads"):
+                 backend: str = "mujoco", progress: bool = True, executor: str = "threads",
+                 keep_simulator: bool = True):
         self.dir = Path(run_dir)
         self.cfg = cfg
+        self.keep_simulator = keep_simulator
         self.config_name = config_name
         self.source = objects
         self.backend = backend
@@ -117,26 +125,59 @@ class CoTrainRun:
         self._check_run_json()
 
     # -- bookkeeping --------------------------------------------------------------------------
-    def _run_meta(self) -> dict:
-        conf = config_to_dict(self.cfg)
+    @staticmethod
+    def _meta_config(cfg: Config) -> dict:
+        conf = config_to_dict(cfg)
         conf["train"].pop("cycles")  # a run may be extended by more cycles
-        return {"config_name": self.config_name, "config": conf, "objects": self.source,
-                "backend": self.backend}
+        return conf
+
+    def _run_meta(self) -> dict:
+        return {"config_name": self.config_name, "config": self._meta_config(self.cfg),
+                "objects": self.source, "backend": self.backend}
+
+    def _recorded(self, meta: dict) -> tuple[dict, Config | None]:
+        """``meta`` with its config as ``config_from_dict`` reads it (fields added since the run
+        was made take the values it was made with), and the Config itself with this run's cycles
+        (None when the record holds no readable config: it is compared as it is)."""
+        try:
+            conf = {part: dict(values) for part, values in meta["config"].items()}
+            conf["train"]["cycles"] = self.cfg.train.cycles
+            recorded = config_from_dict(conf)
+        except (KeyError, TypeError, AttributeError):
+            return meta, None
+        return {**meta, "config": self._meta_config(recorded)}, recorded
+
+    def _keep_recorded_simulator(self, recorded: Config | None) -> None:
+        """A run goes on with the simulator its store was filled by: where the recorded run
+        differs from this one in the simulation and geometry settings alone (a newer default, such
+        as the 4 ms ``fast`` preset), take the recorded ones, unless the caller chose a simulator
+        (``keep_simulator=False``), which is then refused by the check that follows."""
+        if recorded is None:
+            return
+        same_model = (recorded.net, recorded.train) == (self.cfg.net, self.cfg.train)
+        if (self.keep_simulator and same_model
+                and (recorded.sim, recorded.geometry) != (self.cfg.sim, self.cfg.geometry)):
+            log.info("%s: going on with the simulator it was made with (timestep %g s, %s)",
+                     self.dir, recorded.sim.timestep, recorded.sim.integrator)
+            self.cfg = self.cfg.replace(sim=recorded.sim, geometry=recorded.geometry)
 
     def _check_run_json(self) -> None:
         path = self.dir / "run.json"
         if path.exists():
-            old = json.loads(path.read_text())
+            old, recorded = self._recorded(json.loads(path.read_text()))
+            self._keep_recorded_simulator(recorded)
             new = self._run_meta()
             if old.get("backend", new["backend"]) != new["backend"]:
                 raise CheckpointError(
                     f"{self.dir} was simulated with backend {old['backend']!r}; resume it with "
                     f"--backend {old['backend']} (mixing simulators in one store would change it)")
             if old.get("config") != new["config"] or old.get("objects") != new["objects"]:
+                fields = _differing_fields(old.get("config") or {}, new["config"])
                 raise CheckpointError(
                     f"{self.dir} holds a run of config {old.get('config_name')!r} on objects "
-                    f"{old.get('objects')!r}; this one is {new['config_name']!r} on {new['objects']!r}. "
-                    "Choose another --run-dir (nothing was changed)")
+                    f"{old.get('objects')!r}; this one is {new['config_name']!r} on {new['objects']!r}"
+                    + (f" (they differ in {', '.join(fields)})" if fields else "")
+                    + ". Choose another --run-dir (nothing was changed)")
 
     def _write_run_json(self) -> None:
         path = self.dir / "run.json"
@@ -177,10 +218,11 @@ class CoTrainRun:
         if not (src / "run.json").exists() or not (src / "pretrained" / "checkpoints").is_dir():
             raise CheckpointError(f"{src} holds no finished pretraining (no run.json or pretrained/); "
                                   f"make one with: python experiments/cotrain.py --run-dir {src} --cycles 1")
-        old, new = json.loads((src / "run.json").read_text()), self._run_meta()
-        differ = [f"{part}.{k}" for part in new["config"] for k in new["config"][part]
-                  if not (part == "train" and k in COTRAIN_FIELDS)
-                  and old["config"].get(part, {}).get(k) != new["config"][part][k]]
+        old, recorded = self._recorded(json.loads((src / "run.json").read_text()))
+        self._keep_recorded_simulator(recorded)  # the source's store: the source's simulator
+        new = self._run_meta()
+        differ = [f for f in _differing_fields(old["config"], new["config"])
+                  if f.split(".")[0] != "train" or f.split(".")[1] not in COTRAIN_FIELDS]
         differ += [k for k in ("objects", "backend") if old.get(k) != new[k]]
         if differ:
             raise CheckpointError(f"{src} was pretrained with other settings ({', '.join(differ)}); "
