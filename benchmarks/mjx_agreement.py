@@ -6,7 +6,7 @@
                         # agreement it prints is trivial)
 
 N random builtin triples (object, left finger, right finger) are made the way the pretraining
-dataset makes them (``data.dataset.pretraining_pairs``: per builtin object its imprint pair, the
+dataset makes them (``dataset.pretraining_pairs``: per builtin object its imprint pair, the
 WSG50 pair and one pair cut from two other shapes, in that order, seeded), their object hulls
 decomposed once (``geometry.hulls.object_hulls_many``, coacd, cached on disk) and handed to both
 backends, so both simulate identical geometry.  Then ``sim.evaluate(..., backend="mujoco")`` and
@@ -45,7 +45,7 @@ import numpy as np
 from f2f_jax import config, sim
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.data import builtin_object
-from f2f_jax.data.dataset import KINDS, pretraining_pairs
+from f2f_jax.dataset.pretraining import KINDS, pretraining_pairs
 from f2f_jax.geometry import mesh_to_tsdf
 from f2f_jax.geometry.hulls import object_hulls_many
 

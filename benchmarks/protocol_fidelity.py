@@ -53,7 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from f2f_jax import config, sim  # noqa: E402
 from f2f_jax.config import TRIAL_NAMES  # noqa: E402
-from f2f_jax.data.dataset import pretraining_pairs  # noqa: E402
+from f2f_jax.dataset.pretraining import pretraining_pairs  # noqa: E402
 from f2f_jax.geometry import wsg50_fingers  # noqa: E402
 from f2f_jax.geometry.hulls import finger_hulls  # noqa: E402
 from f2f_jax.geometry.pieces import object_pieces_many  # noqa: E402

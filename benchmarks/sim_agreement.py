@@ -17,7 +17,7 @@ their outcomes must agree exactly.
 
 Objects: ``--n-objects`` builtin objects (``--seed``) or the first ``--n-objects`` readable meshes
 of ``--objects DIR``.  Per object, four finger kinds, in this order: its imprint pair, the WSG50
-pair, one pair cut from two other objects of the set (``data.dataset.pretraining_pairs``, seeded
+pair, one pair cut from two other objects of the set (``dataset.pretraining_pairs``, seeded
 by (seed, object)) and a "perturbed" pair, designed-looking fingers: the imprint pair plus a
 smooth random field (``perturbed_finger``).  The first ``--n`` triples of objects x kinds are
 simulated.
@@ -52,7 +52,7 @@ from scipy import ndimage
 from f2f_jax import config, sim
 from f2f_jax.config import SIM_PRESETS, TRIAL_NAMES
 from f2f_jax.data import builtin_objects, load_mesh, mesh_files
-from f2f_jax.data.dataset import KINDS, pretraining_pairs
+from f2f_jax.dataset.pretraining import KINDS, pretraining_pairs
 from f2f_jax.errors import F2FError
 from f2f_jax.geometry import is_feasible, largest_component, mesh_to_tsdf
 from f2f_jax.geometry.hulls import finger_hulls, with_max_vertices

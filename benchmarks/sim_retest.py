@@ -72,7 +72,8 @@ def retest_stats(first: np.ndarray, second: np.ndarray) -> dict:
 
 def _run_candidates(run_dir: Path, k: int, seed: int, workers):
     """The run's held-out objects, K design candidates each, their feasibility and object hulls."""
-    from f2f_jax.designer import postprocess, propose
+    from f2f_jax.geometry import postprocess
+    from f2f_jax.nets.inference import propose
     from f2f_jax.geometry.hulls import object_hulls_many
     from f2f_jax.train.checkpoint import load_models
 

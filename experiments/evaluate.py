@@ -66,7 +66,8 @@ def _held_out_objects(run_dir: Path, cfg):
                                 "co-training run directory?")
     meta = json.loads(meta_path.read_text())
     tsdfs, names = load_or_make_objects(meta["source"], meta["n"], meta["seed"], directory,
-                                        cfg.geometry, progress=False)
+                                        cfg.geometry, progress=False,
+                                        test_fraction=meta.get("test_fraction", 0.2))
     index = {name: i for i, name in enumerate(names)}
     test = [index[n] for n in object_split(directory)["test"] if n in index]
     return tsdfs[np.array(test, int)], [names[i] for i in test]

@@ -13,9 +13,9 @@ import sys
 from pathlib import Path
 
 from f2f_jax import config
-from f2f_jax.data.dataset import build_grasp_dataset
+from f2f_jax.dataset.pretraining import build_grasp_dataset
 from f2f_jax.data import load_or_make_objects
-from f2f_jax.data.store import GraspStore
+from f2f_jax.dataset.store import GraspStore
 from f2f_jax.errors import F2FError
 from f2f_jax.sim import ray_executor
 

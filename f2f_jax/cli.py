@@ -58,9 +58,9 @@ def _design_parser() -> argparse.ArgumentParser:
 
 
 def _load_models(run_dir):
-    from f2f_jax import designer as design_module
+    from f2f_jax.train.checkpoint import load_models  # orbax: loaded only once the flags are good
 
-    return design_module._load_models(run_dir)
+    return load_models(run_dir)
 
 
 def _fail(message: str) -> int:
@@ -83,7 +83,6 @@ def design_main(argv: list[str] | None = None) -> int:
     if out.is_dir() and any(out.iterdir()) and not args.force:
         return _fail(f"--out {out} exists and is not empty; choose another directory or pass --force")
 
-    # Heavy imports after the cheap checks: a typo in a path fails in a blink.
     from f2f_jax.errors import F2FError
 
     try:
@@ -97,6 +96,8 @@ def design_main(argv: list[str] | None = None) -> int:
 
 
 def _run_design(args) -> int:
+    # Heavy imports (JAX, MuJoCo, trimesh) only after the cheap checks of design_main: a typo in a
+    # path fails in a blink, and ``f2f-design --help`` answers at once.
     from f2f_jax.data.sources import load_mesh
     from f2f_jax.sim.ray_executor import executor_from_cli
 

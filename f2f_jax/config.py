@@ -200,7 +200,7 @@ class TrainConfig:
     imprint_anchor: float = 0.0
     # --- the run's data (experiments/cotrain.py) ---
     n_objects: int = 1000  # built-in objects made when no --objects directory is given
-    test_fraction: float = 0.2  # held-out share of the objects (fixed split by name hash)
+    test_fraction: float = 0.2  # held-out share of the objects (a seeded split, kept in the run's objects/)
     cut_pairs: int = 2  # pretraining pairs cut from other shapes, per object
     eval_objects: int = 64  # held-out objects scored after cycle 0 and after the last cycle
 
@@ -320,10 +320,3 @@ def voxel_centres(cfg: GeometryConfig | None = None) -> tuple[np.ndarray, np.nda
     cfg = cfg or GeometryConfig()
     c = (np.arange(cfg.resolution) + 0.5) * cfg.voxel_size
     return c - cfg.cube_size / 2, c - cfg.cube_size / 2, c
-
-
-def volume_bounds(cfg: GeometryConfig | None = None) -> np.ndarray:
-    """``[2, 3]`` lower and upper corner of the volume's cube in its local frame (metres)."""
-    cfg = cfg or GeometryConfig()
-    h = cfg.cube_size / 2
-    return np.array([[-h, -h, 0.0], [h, h, cfg.cube_size]])

@@ -8,11 +8,11 @@ How a design is chosen, per object:
 
 1. The generator maps the object to two finger latents; candidate 0 decodes them as they are, the
    other ``candidates - 1`` add Gaussian noise (standard deviation ``noise``, default
-   ``LATENT_NOISE`` = 0.2, i.e. 0.1 of the latents' [-1, 1] range, clipped back into it) to each
+   ``nets.inference.LATENT_NOISE`` = 0.2, i.e. 0.1 of the latents' [-1, 1] range, clipped back into it) to each
    finger latent before the frozen decoder.  All objects and all candidates go through the
    generator in one jitted call.
 2. Each finger keeps its largest face-connected component and is checked for feasibility
-   (``geometry.largest_component``, ``geometry.is_feasible``), as in co-training.
+   (``geometry.postprocess``), as in co-training.
 3. The fitness net predicts the 11 outcome probabilities of every candidate (one jitted call).
 4. With ``verify=True`` the feasible candidates of all objects are simulated in one
    ``sim.evaluate`` call.  The pool then also holds the object's imprint pair and two variants
@@ -25,34 +25,24 @@ How a design is chosen, per object:
    output wins full ties).  When no candidate is feasible the best-predicted one is returned with
    ``feasible=False`` and an ``InfeasibleDesignWarning``.
 
-Inside the jitted calls the candidates run in chunks of ``CHUNK`` (``lax.map``), so memory stays
+Inside the jitted calls the candidates run in chunks of ``nets.inference.CHUNK`` (``lax.map``), so memory stays
 bounded for large batches (256 objects x 64 candidates) while the call stays one.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import warnings
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from f2f_jax.config import TRIAL_NAMES, GeometryConfig, NetConfig
+from f2f_jax.config import TRIAL_NAMES, GeometryConfig
 from f2f_jax.errors import F2FError, VolumeError
-from f2f_jax.geometry import (check_tsdf, export_finger_stl, imprint_fingers, is_feasible,
-                              largest_component)
-from f2f_jax.nets import RESOLUTION, FingerGenerator, FitnessNet, fitness_input
-from f2f_jax.train.state import Models
+from f2f_jax.geometry import check_tsdf, export_finger_stl, imprint_fingers, postprocess
+from f2f_jax.nets import RESOLUTION
+from f2f_jax.nets.inference import LATENT_NOISE, Models, as_key, predict, propose
 
-# Standard deviation of the Gaussian added to each finger-latent coordinate of candidates
-# 1..K-1: 0.1 of the latent range [-1, 1] (the generator's tanh output, the encoder's means).
-LATENT_NOISE = 0.2
-# Candidates (or objects) per vectorised chunk inside one jitted call: bounds activation memory
-# (default config: ~1 GB per 256 fitness triples on a CPU) without a Python loop.
-CHUNK = 256
 BACKENDS = ("mujoco", "mjx", "warp")
 # The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
 # Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
@@ -195,9 +185,9 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
         raise ValueError(f"noise must be a finite standard deviation >= 0, got {noise!r}")
     models = _load_models(run_dir) if params is None else params
     if not isinstance(models, Models):
-        raise TypeError(f"params must be f2f_jax.train.state.Models (or None to load a "
+        raise TypeError(f"params must be f2f_jax.nets.inference.Models (or None to load a "
                         f"checkpoint), got {type(models).__name__}")
-    key = _as_key(key)
+    key = as_key(key)
     g = models.config.geometry
     if imprint is None:
         imprint = verify
@@ -214,7 +204,7 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
     if not np.all(np.isfinite(predicted)):
         raise F2FError(f"the fitness net of {models.source or 'these models'} predicted NaN/inf; "
                        "the checkpoint is broken")
-    simulated = (_simulate(models, objects, lefts, rights, feasible, backend, progress,
+    simulated = (simulate_candidates(models, objects, lefts, rights, feasible, backend, progress,
                            executor=executor) if verify else None)
     best = rank_candidates(feasible, predicted, simulated)[:, 0]
 
@@ -241,19 +231,6 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
 # steps (module-level so that tests and benchmarks can time or replace each one)
 
 
-def propose(models: Models, objects: np.ndarray, key, candidates: int,
-            noise: float = LATENT_NOISE) -> tuple[np.ndarray, np.ndarray]:
-    """Raw generated candidates, before post-processing.
-
-    objects: [B, 40, 40, 40] float32.  Returns lefts, rights: [B, K, 40, 40, 40] float32 host
-    arrays (writable); candidate 0 is the generator's own output.
-    """
-    lefts, rights = _propose_jit(models.config.net, models.generator, jnp.asarray(objects),
-                                 _as_key(key), jnp.float32(noise), candidates=int(candidates),
-                                 chunk=CHUNK)
-    return np.array(lefts), np.array(rights)
-
-
 def imprint_candidates(objects: np.ndarray,
                        geometry: GeometryConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The imprint pairs of ``IMPRINT_VARIANTS``: objects [B, R, R, R] -> lefts, rights
@@ -266,26 +243,6 @@ def imprint_candidates(objects: np.ndarray,
     lefts = np.array([[left for left, _ in row] for row in pairs], np.float32)
     rights = np.array([[right for _, right in row] for row in pairs], np.float32)
     return lefts, rights
-
-
-def postprocess(lefts: np.ndarray, rights: np.ndarray,
-                geometry: GeometryConfig | None = None) -> np.ndarray:
-    """Keep each finger's largest component, in place; return feasible [B, K] (both fingers)."""
-    b, k = lefts.shape[:2]
-    feasible = np.zeros((b, k), bool)
-    for i in range(b):
-        for j in range(k):
-            lefts[i, j] = largest_component(lefts[i, j])
-            rights[i, j] = largest_component(rights[i, j])
-            feasible[i, j] = is_feasible(lefts[i, j], geometry) and is_feasible(rights[i, j], geometry)
-    return feasible
-
-
-def predict(models: Models, objects: np.ndarray, lefts: np.ndarray, rights: np.ndarray) -> np.ndarray:
-    """Fitness-net probabilities of every candidate: [B, K, 11] float32 (one jitted call)."""
-    p = _fitness_jit(models.config.net, models.fitness, jnp.asarray(objects), jnp.asarray(lefts),
-                     jnp.asarray(rights), chunk=CHUNK)
-    return np.asarray(p, np.float32)
 
 
 def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
@@ -317,14 +274,6 @@ def _load_models(run_dir) -> Models:
     return load_models(run_dir)
 
 
-def _as_key(key):
-    if key is None:
-        return jax.random.key(0)
-    if isinstance(key, (int, np.integer)) and not isinstance(key, bool):
-        return jax.random.key(int(key))
-    return key
-
-
 def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
     """Validate the input: -> ([B, R, R, R] float32, single)."""
     r = RESOLUTION
@@ -343,12 +292,12 @@ def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
                       f"got shape {arr.shape}")
 
 
-def _simulate(models, objects, lefts, rights, feasible, backend, progress=None,
-              object_hulls=None, executor: str = "threads") -> np.ndarray:
+def simulate_candidates(models, objects, lefts, rights, feasible, backend, progress=None,
+                        object_hulls=None, executor: str = "threads") -> np.ndarray:
     """Simulated outcomes [B, K, 11] uint8: the feasible candidates in one evaluate call, zeros
     for the rest (an infeasible finger scores all 0 by the protocol).  object_hulls: optional
     precomputed hulls, one per object."""
-    from f2f_jax.sim import evaluate
+    from f2f_jax.sim import evaluate  # MuJoCo only when verifying: `import f2f_jax` stays light
 
     b, k = feasible.shape
     out = np.zeros((b, k, len(TRIAL_NAMES)), np.uint8)
@@ -361,57 +310,3 @@ def _simulate(models, objects, lefts, rights, feasible, backend, progress=None,
     return out
 
 
-def _chunked_map(f, xs, chunk: int):
-    """``vmap(f)(xs)`` over the leading axis, ``chunk`` rows at a time when there are more (a
-    ``lax.map`` scan: bounded memory, one compiled body).  Small inputs skip the scan, which
-    would otherwise be compiled alongside the remainder."""
-    n = jax.tree.leaves(xs)[0].shape[0]
-    if n <= chunk:
-        return jax.vmap(f)(xs)
-    return jax.lax.map(f, xs, batch_size=chunk)
-
-
-def _decode(module: FingerGenerator, latent: jax.Array) -> jax.Array:
-    return module.decoder(latent, train=False)
-
-
-@functools.partial(jax.jit, static_argnames=("net_cfg", "candidates", "chunk"))
-def _propose_jit(net_cfg: NetConfig, variables, objects, key, noise, *, candidates: int, chunk: int):
-    """objects [B, R, R, R] -> lefts, rights [B, K, R, R, R]; latent noise on candidates 1..K-1."""
-    gen = FingerGenerator(net_cfg)
-    r = RESOLUTION
-
-    def latents(obj):  # [R, R, R] -> [2, D]
-        left, right = gen.apply(variables, obj[None], train=False, method=FingerGenerator.latents)
-        return jnp.concatenate([left, right], axis=0)
-
-    z = _chunked_map(latents, objects, chunk)  # [B, 2, D]
-    b, _, d = z.shape
-    eps = noise * jax.random.normal(key, (b, candidates, 2, d), jnp.float32)
-    eps = eps.at[:, 0].set(0.0)
-    z = jnp.clip(z[:, None] + eps, -1.0, 1.0)  # the decoder saw latents in [-1, 1] only
-
-    def decode(latent):  # [D] -> [R, R, R]
-        return gen.apply(variables, latent[None], method=_decode)[0]
-
-    fingers = _chunked_map(decode, z.reshape(-1, d), chunk)
-    fingers = fingers.reshape(b, candidates, 2, r, r, r)
-    return fingers[:, :, 0], fingers[:, :, 1]
-
-
-@functools.partial(jax.jit, static_argnames=("net_cfg", "chunk"))
-def _fitness_jit(net_cfg: NetConfig, variables, objects, lefts, rights, *, chunk: int):
-    """objects [B, R, R, R], lefts/rights [B, K, R, R, R] -> probabilities [B, K, 11]."""
-    b, k = lefts.shape[:2]
-    r = RESOLUTION
-    owner = jnp.repeat(jnp.arange(b), k)  # candidates share their object's volume, not a copy
-    net = FitnessNet(net_cfg)
-
-    def one(args):
-        i, left, right = args
-        x = fitness_input(objects[i][None], left[None], right[None])
-        return jax.nn.sigmoid(net.apply(variables, x, train=False))[0]
-
-    p = _chunked_map(one, (owner, lefts.reshape(b * k, r, r, r), rights.reshape(b * k, r, r, r)),
-                     chunk)
-    return p.reshape(b, k, -1)

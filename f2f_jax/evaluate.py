@@ -35,12 +35,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+import optax
 
+from f2f_jax import sim
 from f2f_jax.config import TRIAL_NAMES, Config
+from f2f_jax.data.sources import wsg_fmf_fingers
 from f2f_jax.errors import DecompositionError, F2FError, VolumeError
 from f2f_jax.fileio import atomic_path
-from f2f_jax.geometry import imprint_fingers, is_feasible, largest_component, wsg50_fingers
+from f2f_jax.designer import simulate_candidates
+from f2f_jax.geometry.pieces import object_pieces as make_hulls
+from f2f_jax.geometry import imprint_fingers, is_feasible, largest_component, postprocess, wsg50_fingers
+from f2f_jax.nets import FingerGenerator, FitnessNet, fitness_input
+from f2f_jax.nets.inference import LATENT_NOISE, predict, propose
+from f2f_jax.train.steps import generate_batched
 
 log = logging.getLogger(__name__)
 
@@ -163,8 +173,6 @@ def wsg50_designer(cfg: Config | None = None) -> Designer:
 def wsg_fmf_designer(cfg: Config | None = None) -> Designer:
     """The paper's WSG50 row: Schunk's standard WSG-FMF fingers (``data.sources.wsg_fmf_fingers``,
     the mesh of the pybullet extra) for every object.  Raises MissingExtraError without it."""
-    from f2f_jax.data.sources import wsg_fmf_fingers
-
     return _fixed_pair_designer(*wsg_fmf_fingers(cfg))
 
 
@@ -185,13 +193,11 @@ def _postprocess(fingers: np.ndarray) -> np.ndarray:
 
 
 def models_designer(models, *, batch: int = 8) -> Designer:
-    """A trained generator (``train.state.Models``): ``Models.generate`` then the largest
+    """A trained generator (``nets.inference.Models``): ``Models.generate`` then the largest
     connected component of each finger, as in training (an infeasible result stays infeasible
     and scores 0).  batch: objects per call (``train.steps.generate_batched``)."""
 
     def design(objects):
-        from f2f_jax.train.steps import generate_batched
-
         lefts, rights = generate_batched(models.config.net, models.generator,
                                          _objects_array(objects), batch)
         return _postprocess(lefts), _postprocess(rights)
@@ -204,12 +210,6 @@ def _randemb_optimizer(net, steps: int, lr: float, objective: str):
     """Jitted ``(gvars, fvars, obj [R,R,R], z0 [S,2,D]) -> (z [S,2,D], score [S])``: Adam on the
     finger latents (projected onto the latent box [-1, 1]^D) to maximise the fitness net's
     prediction for the decoded fingers.  net: the NetConfig (cached per config: one compile)."""
-    import jax
-    import jax.numpy as jnp
-    import optax
-
-    from f2f_jax.nets import FingerGenerator, FitnessNet, fitness_input
-
     gen, fit = FingerGenerator(net), FitnessNet(net)
     opt = optax.adam(lr)
 
@@ -250,8 +250,6 @@ def random_embedding_designer(models, key, *, samples: int = 8, steps: int = 200
     the fitness net scores best is kept (the best infeasible one if none is feasible: it scores 0).
     key: a JAX PRNG key; object i uses ``fold_in(key, i)``, so a design does not depend on batching.
     """
-    import jax
-
     if objective not in ("grasp", "mean"):
         raise ValueError(f"objective: 'grasp' or 'mean', got {objective!r}")
     if samples < 1 or steps < 0:
@@ -539,8 +537,6 @@ def prepare_objects(objects, cfg: Config, *, object_hulls=None, cache_dir=None,
     Returns (kept objects [M, R, R, R], hulls list of M, notes).  An object whose hulls cannot be
     made (a DecompositionError) is dropped with a note: it says nothing about any finger.
     """
-    from f2f_jax.geometry.pieces import object_pieces as make_hulls
-
     objs = _objects_array(objects, cfg.geometry.resolution)
     if object_hulls is not None:
         hulls = list(object_hulls)
@@ -569,12 +565,10 @@ def _simulate_designs(designs: dict[str, Design], objs, hulls, cfg, backend, pro
                       object_xy=None, executor: str = "threads"):
     """One sim.evaluate call over every designer's pairs (threads stay busy).
     Returns ({designer: [N, 11] uint8}, {designer: feasible fraction}, seconds, failed count)."""
-    from f2f_jax.sim import evaluate
-
     names = list(designs)
     n = len(objs)
     start = time.perf_counter()
-    out, info = evaluate(
+    out, info = sim.evaluate(
         np.concatenate([objs] * len(names)),
         np.concatenate([designs[k].lefts for k in names]),
         np.concatenate([designs[k].rights for k in names]),
@@ -753,21 +747,19 @@ def candidate_outcomes(models, objects, cfg: Config | None = None, *, candidates
     """``f2f_jax.design``'s candidates for every object, all simulated.
 
     Per object the generator's own output and ``candidates - 1`` latent perturbations (``noise``,
-    default ``designer.LATENT_NOISE``), post-processed; infeasible ones score 0 by the protocol.
+    default ``nets.inference.LATENT_NOISE``), post-processed; infeasible ones score 0 by the protocol.
     objects: [N, 40, 40, 40]; object_hulls: optional, one per object; executor: as in
     ``sim.evaluate``.
     Returns (lefts, rights [N, K, 40, 40, 40], feasible [N, K], simulated [N, K, 11] uint8).
     """
-    from f2f_jax.designer import LATENT_NOISE, _simulate, postprocess, propose
-
     if candidates < 1:
         raise ValueError(f"candidates must be >= 1, got {candidates}")
     cfg = cfg or models.config
     objs = _objects_array(objects, cfg.geometry.resolution)
     lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
     feasible = postprocess(lefts, rights, cfg.geometry)
-    simulated = _simulate(dataclasses.replace(models, config=cfg), objs, lefts, rights, feasible,
-                          backend, progress, object_hulls, executor=executor)
+    simulated = simulate_candidates(dataclasses.replace(models, config=cfg), objs, lefts, rights,
+                                    feasible, backend, progress, object_hulls, executor=executor)
     return lefts, rights, feasible, simulated
 
 
@@ -782,8 +774,6 @@ def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: i
     the co-training's premise: a generator that climbs the fitness net can only improve on what
     the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object.
     """
-    from f2f_jax.designer import predict
-
     if candidates < 2:
         raise ValueError(f"candidates must be >= 2 to rank anything, got {candidates}")
     cfg = cfg or models.config

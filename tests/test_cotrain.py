@@ -90,7 +90,7 @@ def test_killed_and_resumed_run_matches_uninterrupted(uninterrupted, tmp_path):
     # ... and the simulated designs of every cycle were stored once, not twice
     cycles = [r["cycle"] for r in _log(run_dir) if r.get("stage") == "cycle"]
     assert sorted(set(cycles)) == [1, 2, 3]
-    from f2f_jax.data.store import GraspStore
+    from f2f_jax.dataset.store import GraspStore
 
     rows = GraspStore(run_dir / "store").read(("cycle",))["cycle"]
     assert [int((rows == c).sum()) for c in (1, 2, 3)] == [config.tiny().train.objects_per_cycle] * 3
@@ -209,7 +209,7 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
     args = ["--config", "tiny", "--quiet", "--cycles", "2", "--objectives", "GS", "--imprint-anchor", "1",
             "--from-pretrained", str(src), "--run-dir", str(run_dir)]
     assert cli.main(args) == 0, capsys.readouterr().err
-    from f2f_jax.data.store import GraspStore
+    from f2f_jax.dataset.store import GraspStore
 
     src_rows = GraspStore(src / "store").read(("cycle",))["cycle"]
     rows = GraspStore(run_dir / "store").read(("cycle",))["cycle"]

@@ -5,8 +5,8 @@ import pytest
 import trimesh
 
 from f2f_jax import sim
-from f2f_jax.data.dataset import build_grasp_dataset
-from f2f_jax.data.store import GraspStore
+from f2f_jax.dataset.pretraining import build_grasp_dataset
+from f2f_jax.dataset.store import GraspStore
 from f2f_jax.geometry import mesh_to_tsdf
 
 

@@ -112,7 +112,7 @@ def test_design_candidates_pick_best_feasible(models, sphere_tsdf):
     k, key = 8, 3
     pair = design_module.design(sphere_tsdf, params=models, candidates=k, key=key)
     # the same candidates, scored independently
-    lefts, rights = design_module.propose(models, sphere_tsdf[None], design_module._as_key(key), k)
+    lefts, rights = design_module.propose(models, sphere_tsdf[None], design_module.as_key(key), k)
     assert np.abs(lefts[0, 1:] - lefts[0, :1]).max() > 0, "latent noise made no new candidates"
     lefts = np.stack([[largest_component(f) for f in lefts[0]]])
     rights = np.stack([[largest_component(f) for f in rights[0]]])

@@ -268,6 +268,18 @@ def test_split_roundtrip_on_disk(tmp_path):
         load_split(tmp_path / "broken.json")
 
 
+def test_object_set_keeps_its_test_fraction(tmp_path):
+    """TrainConfig.test_fraction reaches the split, and a set made with another share is refused."""
+    from f2f_jax.data import load_or_make_objects, object_split
+
+    _, names = load_or_make_objects("builtin", 5, 0, tmp_path, progress=False, test_fraction=0.4)
+    split = object_split(tmp_path)
+    assert len(split["test"]) == 2 and sorted(split["train"] + split["test"]) == sorted(names)
+    load_or_make_objects("builtin", 5, 0, tmp_path, progress=False, test_fraction=0.4)  # reused
+    with pytest.raises(ValueError, match="test_fraction"):
+        load_or_make_objects("builtin", 5, 0, tmp_path, progress=False, test_fraction=0.2)
+
+
 # --- the CLI --------------------------------------------------------------------------------------
 def test_make_objects_cli(tmp_path, capsys):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))

@@ -16,7 +16,7 @@ import pytest
 import trimesh
 
 from f2f_jax import sim
-from f2f_jax.data.store import GraspStore
+from f2f_jax.dataset.store import GraspStore
 from f2f_jax.errors import MissingExtraError
 from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, wsg50_fingers
 from f2f_jax.geometry.pieces import object_pieces

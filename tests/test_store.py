@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from f2f_jax.data.store import GraspStore
+from f2f_jax.dataset.store import GraspStore
 
 
 def _rows(n, seed):

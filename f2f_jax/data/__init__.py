@@ -1,5 +1,6 @@
-"""Data: object sources (built-in, PyBullet's random_urdfs, mesh directories), splits, the
-object set on disk and the grasp-result store."""
+"""Objects: their sources (built-in procedural families, PyBullet's random_urdfs, mesh directories),
+splits and the object set on disk.  The bottom layer beside ``geometry``: no simulator, no JAX.
+The grasp results live above the simulator, in ``f2f_jax.dataset``."""
 
 from f2f_jax.data.object_set import load_or_make_objects, object_split
 from f2f_jax.data.objects import FAMILIES, HOLLOW_FAMILIES, builtin_object, builtin_objects
@@ -12,12 +13,9 @@ from f2f_jax.data.sources import (
     pybullet_random_urdfs,
 )
 from f2f_jax.data.splits import load_split, make_split, save_split
-from f2f_jax.data.store import GraspStore
-
-make_object = builtin_object  # the name the first stand-in used
 
 __all__ = [
-    "FAMILIES", "GraspStore", "HOLLOW_FAMILIES", "builtin_object", "builtin_objects", "load_mesh",
-    "load_mesh_dir", "load_or_make_objects", "load_split", "make_object", "make_split", "mesh_files",
+    "FAMILIES", "HOLLOW_FAMILIES", "builtin_object", "builtin_objects", "load_mesh",
+    "load_mesh_dir", "load_or_make_objects", "load_split", "make_split", "mesh_files",
     "object_source", "object_split", "pybullet_data_dir", "pybullet_random_urdfs", "save_split",
 ]

@@ -20,17 +20,20 @@ log = logging.getLogger(__name__)
 
 
 def load_or_make_objects(source: str, n: int | None, seed: int, directory, cfg: GeometryConfig | None = None,
-                         *, progress: bool = True) -> tuple[np.ndarray, list[str]]:
+                         *, progress: bool = True, test_fraction: float = 0.2,
+                         ) -> tuple[np.ndarray, list[str]]:
     """TSDFs [N, R, R, R] float32 and names of an object set, made once and kept in ``directory``
     (``objects.npz``, ``split.json``, ``source.json``).  Meshes that cannot become a volume are
     skipped and logged.  A directory made from another source, n or seed is refused rather than
-    silently reused."""
+    silently reused.  test_fraction: the held-out share of the split (``TrainConfig.test_fraction``);
+    sets recorded before it was kept were made with 0.2."""
     cfg = cfg or GeometryConfig()
     directory = Path(directory)
-    meta = {"source": str(source), "n": n, "seed": seed, "resolution": cfg.resolution}
+    meta = {"source": str(source), "n": n, "seed": seed, "resolution": cfg.resolution,
+            "test_fraction": float(test_fraction)}
     npz, meta_path = directory / "objects.npz", directory / "source.json"
     if npz.exists() and meta_path.exists():
-        old = json.loads(meta_path.read_text())
+        old = {"test_fraction": 0.2, **json.loads(meta_path.read_text())}
         if old != meta:
             raise ValueError(f"{directory} holds objects made from {old}, not {meta}; "
                              "choose another directory")
@@ -49,7 +52,7 @@ def load_or_make_objects(source: str, n: int | None, seed: int, directory, cfg: 
         raise MeshError(f"no usable object in {source!r}")
     with atomic_path(npz) as tmp:
         np.savez_compressed(tmp, tsdf=np.stack(tsdfs).astype(np.float16), names=np.array(names))
-    save_split(directory / "split.json", make_split(names, seed=seed))
+    save_split(directory / "split.json", make_split(names, test_fraction=test_fraction, seed=seed))
     with atomic_path(meta_path) as tmp:  # written last: it marks the set complete
         tmp.write_text(json.dumps(meta))
     return np.stack(tsdfs).astype(np.float16).astype(np.float32), names

@@ -49,6 +49,19 @@ def largest_component(tsdf: np.ndarray) -> np.ndarray:
     return out
 
 
+def postprocess(lefts: np.ndarray, rights: np.ndarray,
+                geometry: GeometryConfig | None = None) -> np.ndarray:
+    """Keep each finger's largest component, in place; return feasible [B, K] (both fingers)."""
+    b, k = lefts.shape[:2]
+    feasible = np.zeros((b, k), bool)
+    for i in range(b):
+        for j in range(k):
+            lefts[i, j] = largest_component(lefts[i, j])
+            rights[i, j] = largest_component(rights[i, j])
+            feasible[i, j] = is_feasible(lefts[i, j], geometry) and is_feasible(rights[i, j], geometry)
+    return feasible
+
+
 def feasibility_report(finger_tsdf, cfg=None) -> dict:
     """Why a finger is or is not printable and mountable.
 

@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import time
 from pathlib import Path
 
@@ -39,11 +40,14 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm.auto import tqdm
 
+from f2f_jax import sim
 from f2f_jax.config import TRIAL_NAMES, Config
+from f2f_jax.data import load_or_make_objects, object_split
+from f2f_jax.data.sources import wsg_fmf_fingers
+from f2f_jax.dataset import GraspStore, build_grasp_dataset
 from f2f_jax.errors import CheckpointError, F2FError
 from f2f_jax.fileio import atomic_path
-from f2f_jax.designer import postprocess
-from f2f_jax.geometry import imprint_fingers, is_feasible, wsg50_fingers
+from f2f_jax.geometry import imprint_fingers, is_feasible, postprocess, wsg50_fingers
 from f2f_jax.train import steps as S
 from f2f_jax.train.checkpoint import Checkpoints, config_from_dict, config_to_dict
 from f2f_jax.train.state import (
@@ -207,10 +211,6 @@ class CoTrainRun:
         ``COTRAIN_FIELDS`` (the objectives of the Table 1 ablations, the imprint anchor, ...).
         Everything is staged in a hidden sibling directory and renamed into place at the end.
         """
-        import shutil
-
-        from f2f_jax.data.store import GraspStore
-
         src = Path(source)
         if self.dir.exists() and any(self.dir.iterdir()):
             raise CheckpointError(f"{self.dir} is not empty; a run started from {src} needs a new "
@@ -269,16 +269,13 @@ class CoTrainRun:
     # -- data -----------------------------------------------------------------------------------
     def prepare_data(self) -> None:
         """Objects, split, the grasp dataset and the held-out baselines (each resumable)."""
-        from f2f_jax.data import load_or_make_objects, object_split
-        from f2f_jax.data.dataset import build_grasp_dataset
-        from f2f_jax.data.store import GraspStore
-
         t = self.cfg.train
         self.dir.mkdir(parents=True, exist_ok=True)
         self._write_run_json()
         n = t.n_objects if self.source == "builtin" else None
         tsdfs, names = load_or_make_objects(self.source, n, self.seed, self.dir / "objects",
-                                            self.cfg.geometry, progress=self.progress)
+                                            self.cfg.geometry, progress=self.progress,
+                                            test_fraction=self.cfg.train.test_fraction)
         split = object_split(self.dir / "objects")
         index = {name: i for i, name in enumerate(names)}
         self.train_idx = np.array([index[n] for n in split["train"] if n in index])
@@ -342,8 +339,6 @@ class CoTrainRun:
         chunk: runs made before it, or without the pybullet extra, gain it when resumed with it)."""
         if f"heldout-{FMF_KIND}" in self.store.done_keys():
             return
-        from f2f_jax.data.sources import wsg_fmf_fingers
-
         try:
             left, right = wsg_fmf_fingers(self.cfg.geometry)
         except ImportError as exc:  # MissingExtraError
@@ -357,8 +352,6 @@ class CoTrainRun:
                           keys=[f"heldout-{FMF_KIND}"], cycle=-2)
 
     def _simulate(self, objs, lefts, rights, what: str) -> np.ndarray:
-        from f2f_jax import sim
-
         if self.progress:
             where = "" if self.executor == "threads" else f", {self.executor}"
             print(f"simulating {len(objs)} {what} ({self.backend}{where})", flush=True)

@@ -7,8 +7,6 @@ fitness net, with the config that sized them).
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 from typing import Any
 
 import jax
@@ -17,7 +15,8 @@ import optax
 from flax import struct
 
 from f2f_jax.config import Config, TrainConfig
-from f2f_jax.nets import RESOLUTION, FingerGenerator, FitnessNet, ShapeAutoEncoder, fitness_input
+from f2f_jax.nets import RESOLUTION, FingerGenerator, FitnessNet, ShapeAutoEncoder
+from f2f_jax.nets.inference import Models
 
 
 @struct.dataclass
@@ -76,45 +75,6 @@ def init_generator(cfg: Config, seed: int = 0) -> dict:
     r = RESOLUTION
     x = jnp.zeros((2, r, r, r), jnp.float32)
     return _init(FingerGenerator(cfg.net), seed, x)
-
-
-@dataclasses.dataclass(frozen=True)
-class Models:
-    """What a run trained, ready for ``f2f_jax.design`` and evaluation.
-
-    config: the Config that sized the nets.
-    generator: ``FingerGenerator`` variables ``{"params": {encoder, embedding, decoder},
-        "batch_stats": {...}}``.
-    fitness: ``FitnessNet`` variables ``{"params", "batch_stats"}``.
-    objectives: the fitness outputs the generator was trained to maximise ("full", "GS", ...).
-    source: where they came from (a checkpoint path, or "random init").
-    """
-
-    config: Config
-    generator: dict
-    fitness: dict
-    objectives: str = "full"
-    source: str = ""
-
-    def generate(self, objects: jax.Array) -> tuple[jax.Array, jax.Array]:
-        """[B, 40, 40, 40] object TSDFs -> left, right finger TSDFs [B, 40, 40, 40] (eval mode)."""
-        return _generate(self.config.net, self.generator, jnp.asarray(objects, jnp.float32))
-
-    def predict(self, objects: jax.Array, lefts: jax.Array, rights: jax.Array) -> jax.Array:
-        """Fitness probabilities [B, 11] of (object, left, right) triples (eval mode)."""
-        return _predict(self.config.net, self.fitness, jnp.asarray(objects, jnp.float32),
-                        jnp.asarray(lefts, jnp.float32), jnp.asarray(rights, jnp.float32))
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def _generate(net_cfg, variables, objects):
-    return FingerGenerator(net_cfg).apply(variables, objects, train=False)
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def _predict(net_cfg, variables, objects, lefts, rights):
-    logits = FitnessNet(net_cfg).apply(variables, fitness_input(objects, lefts, rights), train=False)
-    return jax.nn.sigmoid(logits)
 
 
 def init_models(cfg: Config, seed: int = 0, objectives: str = "full") -> Models:

@@ -20,6 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from f2f_jax.config import Config
 from f2f_jax.nets import FingerGenerator, FitnessNet, ShapeAutoEncoder, fitness_input
+from f2f_jax.nets.inference import generate
 from f2f_jax.train.losses import (
     fitness_loss,
     generator_loss,
@@ -249,14 +250,12 @@ def generate_batched(net_cfg, variables: dict, objects: np.ndarray,
 
     objects: [N, 40, 40, 40] float32. Returns lefts, rights: [N, 40, 40, 40] float32 numpy.
     """
-    from f2f_jax.train.state import _generate
-
     lefts, rights = [], []
     for s in range(0, len(objects), batch):
         chunk = objects[s:s + batch]
         pad = batch - len(chunk) if len(objects) > batch else 0
         x = np.concatenate([chunk, np.repeat(chunk[-1:], pad, 0)]) if pad else chunk
-        left, right = _generate(net_cfg, variables, shard(np.asarray(x, np.float32)))
+        left, right = generate(net_cfg, variables, shard(np.asarray(x, np.float32)))
         lefts.append(np.asarray(left, np.float32)[: len(chunk)])
         rights.append(np.asarray(right, np.float32)[: len(chunk)])
     return np.concatenate(lefts), np.concatenate(rights)
