@@ -35,7 +35,9 @@ from f2f_jax.geometry import (  # noqa: E402
     mesh_to_tsdf,
     tsdf_to_mesh,
 )
+from f2f_jax.geometry import finger_tiling as FH  # noqa: E402
 from f2f_jax.geometry import hulls as H  # noqa: E402
+from f2f_jax.geometry import coacd_pieces as OH  # noqa: E402
 
 
 def primitive_objects(n: int, seed: int) -> list[trimesh.Trimesh]:
@@ -100,10 +102,10 @@ def sphere_depth(h: H.Hulls, g: GeometryConfig) -> float:
 
 def finger_figures(fingers, g, **kwargs) -> dict:
     """Time and fit of finger_hulls over a list of finger volumes."""
-    H.finger_hulls(fingers[0], g, **kwargs)  # warm caches and imports
+    FH.finger_hulls(fingers[0], g, **kwargs)  # warm caches and imports
     times, fits = [], []
     for f in fingers:
-        h, dt = timed(H.finger_hulls, f, g, **kwargs)
+        h, dt = timed(FH.finger_hulls, f, g, **kwargs)
         times.append(dt)
         fits.append(H.hull_fit(f, h, g))
     iou = np.array([f["iou"] for f in fits])
@@ -160,7 +162,7 @@ def main(argv=None) -> dict:
                  f"{fig['shortfall_mm_max']:.2f} mm", "solid left outside"))
     sphere = imprint_fingers(mesh_to_tsdf(trimesh.creation.icosphere(), g), g)[0]
     for cover in (False, True):
-        depth = sphere_depth(H.finger_hulls(sphere, g, cover=cover), g)
+        depth = sphere_depth(FH.finger_hulls(sphere, g, cover=cover), g)
         out[f"sphere_imprint_depth_mm_{'cover' if cover else 'balanced'}"] = depth * 1e3
         rows.append((f"  sphere imprint: depth into sphere{' (cover)' if cover else ''}",
                      f"{depth * 1e3:.2f} mm", "left finger at closure"))
@@ -195,9 +197,9 @@ def main(argv=None) -> dict:
             tsdf = tsdfs[i]
             name = objects[i].metadata.get("name", str(i))
             wall0 = time.perf_counter()
-            h, dt = timed(H.object_hulls, tsdf, g, cache_dir=cache)
+            h, dt = timed(OH.object_hulls, tsdf, g, cache_dir=cache)
             wall = time.perf_counter() - wall0
-            _, hit = timed(H.object_hulls, tsdf, g, cache_dir=cache)
+            _, hit = timed(OH.object_hulls, tsdf, g, cache_dir=cache)
             fit = H.hull_fit(tsdf, h, g)
             row = dict(object=name, cpu_seconds=dt, wall_seconds=wall, cache_hit_ms=hit * 1e3,
                        speedup=dt / max(hit, 1e-6), pieces=h.n_pieces, **fit)
@@ -207,10 +209,10 @@ def main(argv=None) -> dict:
                          f"{fit['max_shortfall_m'] * 1e3:.2f} mm; cache hit {hit * 1e3:.1f} ms "
                          f"({row['speedup']:.0f}x)"))
             if args.sweep:  # the same coacd pieces in layouts of 4, 8, 16 pieces
-                pieces = H.decompose_mesh(tsdf_to_mesh(tsdf, g), name=name)
+                pieces = OH.decompose_mesh(tsdf_to_mesh(tsdf, g), name=name)
                 row["sweep"] = []
                 for k in (4, 8, 16):
-                    hk = H._layout(list(pieces), k, g.hull_vertices, g, name)
+                    hk = OH.pieces_to_hulls(list(pieces), k, g.hull_vertices, g, name)
                     fk = H.hull_fit(tsdf, hk, g)
                     row["sweep"].append(dict(max_pieces=k, coacd_pieces=len(pieces), **fk))
                     rows.append((f"  K={k:2d} (coacd gave {len(pieces)})", "",

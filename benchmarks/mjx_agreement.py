@@ -8,7 +8,7 @@
 N random builtin triples (object, left finger, right finger) are made the way the pretraining
 dataset makes them (``dataset.pretraining_pairs``: per builtin object its imprint pair, the
 WSG50 pair and one pair cut from two other shapes, in that order, seeded), their object hulls
-decomposed once (``geometry.hulls.object_hulls_many``, coacd, cached on disk) and handed to both
+decomposed once (``geometry.hull_pool.object_hulls_many``, coacd, cached on disk) and handed to both
 backends, so both simulate identical geometry.  Then ``sim.evaluate(..., backend="mujoco")`` and
 ``sim.evaluate(..., backend="mjx")`` run the 11 trials of every triple, each timed.  MJX's first
 run includes compiling its programs (one per program and power-of-two batch size); with
@@ -47,7 +47,7 @@ from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.data import builtin_object
 from f2f_jax.dataset.pretraining import KINDS, pretraining_pairs
 from f2f_jax.geometry import mesh_to_tsdf
-from f2f_jax.geometry.hulls import object_hulls_many
+from f2f_jax.geometry.hull_pool import object_hulls_many
 
 
 def make_triples(n: int, seed: int, cfg, kinds=KINDS):

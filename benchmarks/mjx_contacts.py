@@ -35,7 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from f2f_jax import config  # noqa: E402
 from f2f_jax.geometry import imprint_fingers  # noqa: E402
-from f2f_jax.geometry.hulls import finger_hulls, with_max_vertices  # noqa: E402
+from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
+from f2f_jax.geometry.hulls import with_max_vertices
 from f2f_jax.geometry.pieces import object_pieces_many  # noqa: E402
 from f2f_jax.sim import mjx_batch  # noqa: E402
 from f2f_jax.sim.mujoco_cpu import batched_model_options  # noqa: E402

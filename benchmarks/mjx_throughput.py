@@ -22,7 +22,8 @@ import jax
 import numpy as np
 
 from f2f_jax import config
-from f2f_jax.geometry.hulls import Hulls, finger_hulls
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.sim import mjx_batch
 from f2f_jax.sim.protocol import run_trials
 from f2f_jax.sim.scene import build_model
@@ -31,7 +32,7 @@ from f2f_jax.sim.scene import build_model
 def make_triples(path: Path, n: int, seed: int, cfg) -> None:
     from f2f_jax.data import builtin_objects
     from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf
-    from f2f_jax.geometry.hulls import object_hulls
+    from f2f_jax.geometry.coacd_pieces import object_hulls
 
     rows = {k: [] for k in ("ohv", "ohc", "left", "right")}
     for mesh in builtin_objects(n, seed=seed):

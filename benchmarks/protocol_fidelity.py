@@ -55,7 +55,7 @@ from f2f_jax import config, sim  # noqa: E402
 from f2f_jax.config import TRIAL_NAMES  # noqa: E402
 from f2f_jax.dataset.pretraining import pretraining_pairs  # noqa: E402
 from f2f_jax.geometry import wsg50_fingers  # noqa: E402
-from f2f_jax.geometry.hulls import finger_hulls  # noqa: E402
+from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
 from f2f_jax.geometry.pieces import object_pieces_many  # noqa: E402
 from sim_agreement import _rates, _vector, agreement_stats, load_objects, perturbed_finger  # noqa: E402
 

@@ -42,7 +42,7 @@ can measure what the original's choice changes):
 * The push acts at the object's centre of mass (the original passed the world origin as the point
   of application, which also twisted the object), and the object's centre of mass is the centroid
   of its pieces (the original's sat at the bottom centre of the object's mesh).
-* Collision shapes come from our hull arrays (``f2f_jax.geometry.hulls``), written as one
+* Collision shapes come from our hull arrays (``f2f_jax.geometry.hulls.Hulls``), written as one
   multi-object OBJ per shape: Bullet turns each object of such a file into a convex hull inside one
   compound shape, exactly what the original got from its V-HACD files.  (``createCollisionShape``
   with ``vertices=`` makes one hull only, and ``createCollisionShapeArray`` takes no vertices.)
@@ -574,7 +574,7 @@ def convex_object_hulls(obj_tsdf, cfg: Config | None = None) -> Hulls:
     """One convex piece around the object's marching-cubes surface, in the object layout.
 
     Exact (up to the layout's vertex budget) for convex objects; a stand-in for the coacd pieces
-    of ``hulls.object_hulls`` where those are too slow to make or not wanted.
+    of ``coacd_pieces.object_hulls`` where those are too slow to make or not wanted.
     """
     from f2f_jax.geometry import tsdf_to_mesh
     from f2f_jax.geometry.hulls import pad_hulls
@@ -597,13 +597,13 @@ def _demo_shapes() -> dict[str, trimesh.Trimesh]:
 def main(argv=None):
     from f2f_jax.config import TRIAL_NAMES
     from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf
-    from f2f_jax.geometry import hulls as hulls_module
+    from f2f_jax.geometry import finger_hulls, object_hulls
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--repeat", type=int, default=1,
                         help="evaluate each imprint triple this many times")
     parser.add_argument("--objects", choices=("convex", "coacd"), default="convex",
-                        help="object pieces: one hull (convex demo shapes) or hulls.object_hulls")
+                        help="object pieces: one hull (convex demo shapes) or coacd_pieces.object_hulls")
     args = parser.parse_args(argv)
     cfg = default()
     objects, lefts, rights, names = [], [], [], []
@@ -611,11 +611,11 @@ def main(argv=None):
         tsdf = mesh_to_tsdf(mesh, cfg.geometry, name=name)
         left, right = imprint_fingers(tsdf, cfg.geometry)
         if args.objects == "coacd":
-            obj = hulls_module.object_hulls(tsdf, cfg.geometry)
+            obj = object_hulls(tsdf, cfg.geometry)
         else:
             obj = convex_object_hulls(tsdf, cfg)
-        left_hulls = hulls_module.finger_hulls(left, cfg.geometry)
-        right_hulls = hulls_module.finger_hulls(right, cfg.geometry)
+        left_hulls = finger_hulls(left, cfg.geometry)
+        right_hulls = finger_hulls(right, cfg.geometry)
         objects += [obj] * args.repeat
         lefts += [left_hulls] * args.repeat
         rights += [right_hulls] * args.repeat

@@ -55,7 +55,8 @@ from f2f_jax.data import builtin_objects, load_mesh, mesh_files
 from f2f_jax.dataset.pretraining import KINDS, pretraining_pairs
 from f2f_jax.errors import F2FError
 from f2f_jax.geometry import is_feasible, largest_component, mesh_to_tsdf
-from f2f_jax.geometry.hulls import finger_hulls, with_max_vertices
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.hulls import with_max_vertices
 from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
 
 FINGER_KINDS = (*KINDS, "perturbed")

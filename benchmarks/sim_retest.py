@@ -74,7 +74,7 @@ def _run_candidates(run_dir: Path, k: int, seed: int, workers):
     """The run's held-out objects, K design candidates each, their feasibility and object hulls."""
     from f2f_jax.geometry import postprocess
     from f2f_jax.nets.inference import propose
-    from f2f_jax.geometry.hulls import object_hulls_many
+    from f2f_jax.geometry.hull_pool import object_hulls_many
     from f2f_jax.train.checkpoint import load_models
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
@@ -120,7 +120,7 @@ def main(argv=None) -> int:
         hl = [hulls[i] for i in ib]
         what = f"{n} held-out objects x {k} candidates of {args.run_dir} ({len(ib)} feasible)"
     else:
-        from f2f_jax.geometry.hulls import object_hulls_many
+        from f2f_jax.geometry.hull_pool import object_hulls_many
 
         cfg = config.get(args.config)
         pool, triples = make_triples(args.n, args.seed, cfg)

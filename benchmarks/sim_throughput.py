@@ -54,7 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from f2f_jax import config, sim  # noqa: E402
 from f2f_jax.geometry import imprint_fingers  # noqa: E402
-from f2f_jax.geometry.hulls import finger_hulls  # noqa: E402
+from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
 from f2f_jax.geometry.pieces import object_pieces, object_pieces_many  # noqa: E402
 from f2f_jax.sim import ray_executor  # noqa: E402
 from sim_agreement import load_objects  # noqa: E402

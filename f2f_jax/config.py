@@ -320,3 +320,10 @@ def voxel_centres(cfg: GeometryConfig | None = None) -> tuple[np.ndarray, np.nda
     cfg = cfg or GeometryConfig()
     c = (np.arange(cfg.resolution) + 0.5) * cfg.voxel_size
     return c - cfg.cube_size / 2, c - cfg.cube_size / 2, c
+
+
+def geometry_config(cfg=None) -> GeometryConfig:
+    """The GeometryConfig of ``cfg``: a Config's, a GeometryConfig itself, or the default for None."""
+    if cfg is None:
+        return GeometryConfig()
+    return cfg.geometry if isinstance(cfg, Config) else cfg

@@ -12,21 +12,22 @@ from scipy.spatial import ConvexHull
 
 from f2f_jax.config import GeometryConfig, voxel_centres
 from f2f_jax.errors import DecompositionError, VolumeError
-from f2f_jax.geometry import finger_pose, hulls, imprint_fingers, mesh_to_tsdf, wsg50_fingers
+from f2f_jax.geometry import coacd_pieces, finger_pose, finger_tiling, imprint_fingers, mesh_to_tsdf, wsg50_fingers
+from f2f_jax.geometry.finger_tiling import finger_height_map, finger_hulls
 from f2f_jax.geometry.hulls import (
-    CoacdSettings,
     Hulls,
-    decompose_mesh,
-    finger_height_map,
-    finger_hulls,
     hull_fit,
     hulls_to_mesh,
-    mesh_hulls,
-    object_hulls,
     pad_hulls,
-    reduce_pieces,
     reduce_vertices,
     stack_hulls,
+)
+from f2f_jax.geometry.coacd_pieces import (
+    CoacdSettings,
+    decompose_mesh,
+    mesh_hulls,
+    object_hulls,
+    reduce_pieces,
 )
 
 G = GeometryConfig()
@@ -209,7 +210,7 @@ def test_more_pieces_fit_better(sphere_imprints):
 
 def test_finger_tiles_partition_the_solid_columns(fingers):
     finger = fingers["rough"]
-    labels = hulls.finger_tiles(finger)
+    labels = finger_tiling.finger_tiles(finger)
     solid = finger_height_map(finger) > 0
     assert labels.shape == (40, 40)
     assert np.all(labels[solid] >= 0) and labels.max() < K  # every solid column in one piece
@@ -296,7 +297,7 @@ def test_corrupt_cache_file_is_recomputed(l_shape_tsdf, tmp_path):
 
 def test_cache_key_and_location(l_shape_tsdf, sphere_tsdf, tmp_path, monkeypatch):
     monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path))
-    assert hulls.default_cache_dir() == tmp_path / "hulls"
+    assert coacd_pieces.default_cache_dir() == tmp_path / "hulls"
     object_hulls(sphere_tsdf)
     object_hulls(sphere_tsdf, settings=CoacdSettings(threshold=0.1))  # other settings, new entry
     object_hulls(sphere_tsdf, max_pieces=4)  # other layout, new entry
@@ -353,7 +354,7 @@ def test_noise_volume_does_not_hang_in_coacd(tmp_path):
 def test_many_objects_in_worker_processes_match_one_by_one(sphere_tsdf, tmp_path):
     """object_hulls_many: uncached volumes decomposed by two worker processes give the hulls
     object_hulls gives; a duplicate is done once; a bad volume is an error string, not a crash."""
-    from f2f_jax.geometry.hulls import object_hulls_many
+    from f2f_jax.geometry.hull_pool import object_hulls_many
 
     r = G.resolution
     box = np.ones((r, r, r), np.float32)

@@ -13,7 +13,8 @@ import pytest
 pytest.importorskip("pybullet")
 
 from f2f_jax.geometry import imprint_fingers, wsg50_fingers  # noqa: E402
-from f2f_jax.geometry.hulls import Hulls, finger_hulls  # noqa: E402
+from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
+from f2f_jax.geometry.hulls import Hulls
 
 peer = importlib.import_module("benchmarks.pybullet_original")
 

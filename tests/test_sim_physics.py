@@ -17,7 +17,8 @@ from f2f_jax import config
 from f2f_jax.config import TRIAL_NAMES, voxel_centres
 from f2f_jax.errors import VolumeError
 from f2f_jax.geometry import imprint_fingers, is_feasible, tsdf_to_mesh, wsg50_fingers
-from f2f_jax.geometry.hulls import Hulls, finger_hulls, pad_hulls
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.hulls import Hulls, pad_hulls
 from f2f_jax.geometry.pieces import object_pieces
 from f2f_jax.sim import GraspRunner, build_model, evaluate, run_trials, scene_ids
 
@@ -250,7 +251,7 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
     decomposition error fails only the candidates of that object."""
     tiny = config.with_sim_preset(tiny, "reference")  # the coacd path
     from f2f_jax.errors import DecompositionError
-    from f2f_jax.geometry import hulls
+    from f2f_jax.geometry import hull_pool  # where the coacd path calls object_hulls
 
     other = sphere_tsdf.copy()
     other[0, 0, 0] = 0.5  # a different volume, same shape
@@ -262,7 +263,7 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
             raise DecompositionError("object: coacd found nothing")
         return sphere_hulls
 
-    monkeypatch.setattr(hulls, "object_hulls", fake_object_hulls)
+    monkeypatch.setattr(hull_pool, "object_hulls", fake_object_hulls)
     left, right = wsg50_fingers(tiny)
     # one thread: decomposition stays in this process (with more, worker processes run coacd)
     out, info = evaluate([sphere_tsdf, other, sphere_tsdf], [left] * 3, [right] * 3, cfg=tiny,

@@ -16,7 +16,8 @@ from f2f_jax import config
 from f2f_jax.config import voxel_centres
 from f2f_jax.errors import VolumeError
 from f2f_jax.geometry import imprint_fingers
-from f2f_jax.geometry.hulls import finger_hulls, hull_fit, points_in_hulls
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.hulls import hull_fit, points_in_hulls
 from f2f_jax.geometry.object_tiles import depth_map, tile_object_hulls
 from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
 from f2f_jax.sim import build_model, evaluate, run_trials

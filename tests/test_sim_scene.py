@@ -10,7 +10,8 @@ import trimesh
 
 from f2f_jax.errors import DecompositionError
 from f2f_jax.geometry import finger_pose, imprint_fingers, mesh_to_tsdf, tsdf_to_mesh, wsg50_fingers
-from f2f_jax.geometry.hulls import Hulls, finger_hulls, pad_hulls
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.hulls import Hulls, pad_hulls
 from f2f_jax.sim import GRIPPER_XML, GraspRunner, build_model, describe_layout, scene_ids
 from f2f_jax.sim.scene import FINGER_BIT, finger_object_distance
 

@@ -1,5 +1,7 @@
 """Shapes as volumes: TSDFs, fingers, convex pieces.  numpy/trimesh/scikit-image/coacd, no JAX."""
 
+from f2f_jax.geometry.coacd_pieces import object_hulls
+from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.fingers import (
     export_finger_stl,
     feasibility_report,
@@ -13,7 +15,7 @@ from f2f_jax.geometry.fingers import (
     postprocess,
     wsg50_fingers,
 )
-from f2f_jax.geometry.hulls import Hulls, finger_hulls, hull_fit, object_hulls, stack_hulls
+from f2f_jax.geometry.hulls import Hulls, hull_fit, stack_hulls
 from f2f_jax.geometry.tsdf import check_tsdf, mesh_to_tsdf, normalize_mesh, solid, tsdf_to_mesh
 
 __all__ = [

@@ -12,19 +12,13 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from f2f_jax.config import Config, GeometryConfig, voxel_centres
+from f2f_jax.config import GeometryConfig, geometry_config, voxel_centres
 from f2f_jax.errors import VolumeError
-from f2f_jax.geometry.tsdf import check_tsdf, marching_cubes_mesh
 from f2f_jax.fileio import atomic_path
+from f2f_jax.geometry.tsdf import check_tsdf, marching_cubes_mesh
 
 # Face-connected components only: voxels touching at an edge or a corner do not print as one part.
 _CONNECTIVITY = ndimage.generate_binary_structure(3, 1)
-
-
-def _geom(cfg) -> GeometryConfig:
-    if cfg is None:
-        return GeometryConfig()
-    return cfg.geometry if isinstance(cfg, Config) else cfg
 
 
 def _components(solid: np.ndarray) -> tuple[np.ndarray, int]:
@@ -68,7 +62,7 @@ def feasibility_report(finger_tsdf, cfg=None) -> dict:
     Returns dict(feasible, components, base_fraction (best share of solid voxels among the first
     `feasible_base_planes` planes from the mount), touches_mount).
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     arr = np.asarray(finger_tsdf)
     r = g.resolution
     if arr.shape != (r, r, r):
@@ -148,7 +142,7 @@ def imprint_fingers(obj_tsdf, cfg=None) -> tuple[np.ndarray, np.ndarray]:
     the fingers can close around the object.  The right finger is computed as the left finger of
     the object turned 180 degrees about z, which is exactly its frame (config.py).
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     obj = check_tsdf(obj_tsdf, "object", g)
     left = _imprint_left(obj, g)
     right = _imprint_left(obj[::-1, ::-1, :], g)
@@ -163,7 +157,7 @@ def finger_from_shape(shape_tsdf, cfg=None) -> np.ndarray | None:
     to R planes.  Returns the finger volume, or None when no such plane exists or the stretched
     finger is not feasible.
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     vol = largest_component(check_tsdf(shape_tsdf, "shape", g))
     r = g.resolution
     share = (vol < 0).mean(axis=(0, 1))
@@ -197,7 +191,7 @@ def wsg50_fingers(cfg=None, *, width: float = 0.02, depth: float = 0.03) -> tupl
     A block ``width`` wide (u), the cube's full height (v) less a voxel, reaching ``depth`` from the
     mount (w): a flat pad parallel to the mount plate.  Returns (left, right), identical volumes.
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     h = g.cube_size / 2 - g.voxel_size
     lo = np.array([-width / 2, -h, -g.voxel_size])  # starts below w = 0: solid on the mount plane
     hi = np.array([width / 2, h, depth])
@@ -222,7 +216,7 @@ def finger_from_mesh(mesh: trimesh.Trimesh, cfg=None, *, reach: float = 0.03) ->
     Returns [R, R, R] float32, a projective TSDF as ``imprint_fingers`` makes.  Raises ValueError
     for a mesh that no column of the volume meets.
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     r, vox = g.resolution, g.voxel_size
     lo, hi = np.asarray(mesh.bounds, np.float64)
     if not 0 < reach <= g.cube_size:
@@ -246,7 +240,7 @@ def finger_from_mesh(mesh: trimesh.Trimesh, cfg=None, *, reach: float = 0.03) ->
 def finger_extent(finger_tsdf, cfg=None) -> float:
     """How far the finger reaches from its mount plane (metres): the largest w of any solid voxel,
     to its far face."""
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     solid = np.asarray(finger_tsdf) < 0
     planes = np.nonzero(solid.any(axis=(0, 1)))[0]
     if len(planes) == 0:
@@ -262,7 +256,7 @@ def finger_pose(side: str, mount_x: float, cfg=None) -> np.ndarray:
     z0 = cube_size / 2 + rest_offset: finger and object volumes share their vertical frame, so
     finger voxel row iv faces object voxel row iz = iv.
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     z0 = g.cube_size / 2 + g.rest_offset
     T = np.eye(4)
     if side == "left":
@@ -281,7 +275,7 @@ def finger_with_mount(finger_tsdf, cfg=None) -> trimesh.Trimesh:
     The plate (``mount_plate_thickness``, the cube's full face less one voxel) is joined to the
     finger in volume space, so the surface is a single closed marching-cubes mesh.
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     finger = check_tsdf(finger_tsdf, "finger", g)
     if not is_feasible(finger, g):
         report = feasibility_report(finger, g)

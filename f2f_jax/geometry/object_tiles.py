@@ -1,8 +1,8 @@
 """Object volumes -> convex pieces in milliseconds: hulls over tiles of the two-sided depth map.
 
-coacd (``hulls.object_hulls``) costs 13-30 s per non-convex object: fine for a fixed set cached on
+coacd (``coacd_pieces.object_hulls``) costs 13-30 s per non-convex object: fine for a fixed set cached on
 disk, not for thousands of training objects or a user's new mesh at design time.  The fingers
-close along world x, and a finger is itself a height map along x (``hulls.finger_hulls``), so
+close along world x, and a finger is itself a height map along x (``finger_tiling.finger_hulls``), so
 what a finger can touch of an object is, line by line along x, where the object begins
 (``x_min``) and where it ends (``x_max``).  This module tiles that two-sided depth map over the
 (y, z) plane, as the fingers' height maps are tiled over theirs: a tile's piece is the convex
@@ -25,7 +25,13 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from f2f_jax.errors import DecompositionError
-from f2f_jax.geometry.hulls import Hulls, _geom, _hull_vertices, _pack, _reduce
+from f2f_jax.geometry.hulls import (
+    Hulls,
+    convex_vertices,
+    geometry_config,
+    pack_pieces,
+    reduce_with_error,
+)
 from f2f_jax.geometry.tsdf import check_tsdf
 
 _TOLERANCE_VOXELS = 0.5  # a piece within this of the depth map is not cut further
@@ -40,7 +46,7 @@ def depth_map(obj_tsdf, cfg=None) -> tuple[np.ndarray, np.ndarray]:
     before the first and after the last solid voxel of each line (linear between voxel
     centres; the cube's faces count as empty); NaN on lines without solid.
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     arr = check_tsdf(obj_tsdf, "object", g).astype(np.float64)
     r = g.resolution
     solid = arr < 0
@@ -167,7 +173,7 @@ def tile_object_hulls(obj_tsdf, cfg=None, *, max_pieces: int | None = None,
     Raises VolumeError for an invalid or empty volume, DecompositionError when no piece spans
     a volume.
     """
-    g = _geom(cfg)
+    g = geometry_config(cfg)
     k = max_pieces or g.object_hulls
     v = max_vertices or g.hull_vertices
     m = _Map(*depth_map(obj_tsdf, g), g)
@@ -197,9 +203,9 @@ def tile_object_hulls(obj_tsdf, cfg=None, *, max_pieces: int | None = None,
     for box in sorted(done):  # slot order by position
         try:
             # every other corner: on 3 mm chords a 3 cm radius sags by 0.04 mm
-            pieces.append(_reduce(_hull_vertices(m.points(box, 2)), v)[0])
+            pieces.append(reduce_with_error(convex_vertices(m.points(box, 2)), v)[0])
         except DecompositionError:
             continue  # a tile one column thin and flat: no volume
     if not pieces:
         raise DecompositionError("object: no tile of its depth map spans a volume")
-    return _pack(pieces, k, v)
+    return pack_pieces(pieces, k, v)

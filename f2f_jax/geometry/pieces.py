@@ -1,14 +1,14 @@
 """Which convex pieces an object enters the simulator as, by ``GeometryConfig.object_method``
 (the geometry of a simulation preset, ``config.SIM_PRESETS``):
 
-* "coacd" (``hulls.object_hulls``, both presets): coacd's decomposition of the marching-cubes
+* "coacd" (``coacd_pieces.object_hulls``, both presets): coacd's decomposition of the marching-cubes
   surface, 13-30 s per non-convex object, cached on disk;
 * "tiles" (``object_tiles.tile_object_hulls``): hulls over tiles of the object's depth map along
   the closing axis, ~0.15 s from the volume, no cache.  94-95% of trials agree with coacd's
   (benchmarks/RESULTS.md): for new objects when coacd's time matters more than that.
 
 Both return the same ``Hulls`` layout, so every backend and renderer takes either.  Fingers are
-always ``hulls.finger_hulls`` (height-map hulls, milliseconds).
+always ``finger_tiling.finger_hulls`` (height-map hulls, milliseconds).
 """
 
 from __future__ import annotations
@@ -20,8 +20,9 @@ from tqdm.auto import tqdm
 
 from f2f_jax.config import Config, GeometryConfig
 from f2f_jax.errors import F2FError
-from f2f_jax.geometry.hulls import (Hulls, cached_object_hulls, object_hulls, object_hulls_many,
-                                    store_object_hulls)
+from f2f_jax.geometry.coacd_pieces import cached_object_hulls, object_hulls, store_object_hulls
+from f2f_jax.geometry.hull_pool import object_hulls_many
+from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.object_tiles import tile_object_hulls
 
 OBJECT_METHODS = ("tiles", "coacd")
@@ -69,7 +70,7 @@ def keep_pieces(obj_tsdf, hulls: Hulls, cfg=None, *, cache_dir=None) -> None:
 def object_pieces_many(objects, cfg=None, *, cache_dir=None, workers: int | None = None,
                        progress: bool | None = None) -> list[Hulls | str]:
     """``object_pieces`` of many volumes, each distinct one once.  Tiles are made here; coacd
-    pieces go through ``hulls.object_hulls_many`` (disk cache, worker processes).  Returns per
+    pieces go through ``hull_pool.object_hulls_many`` (disk cache, worker processes).  Returns per
     object its Hulls or the error message of a volume that failed (one bad object does not
     stop a batch)."""
     g = _geometry(cfg)

@@ -22,7 +22,8 @@ import numpy as np
 from f2f_jax.config import Config, with_sim_preset
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry.fingers import feasibility_report
-from f2f_jax.geometry.hulls import Hulls, finger_hulls
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.pieces import object_pieces_many as make_object_hulls_many
 from f2f_jax.geometry.tsdf import check_tsdf
 from f2f_jax.sim.protocol import TrialResult, run_trials

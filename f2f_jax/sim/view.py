@@ -189,7 +189,7 @@ def render_trials(model: mujoco.MjModel, cfg: Config, path) -> np.ndarray:
 
 def main(argv=None) -> int:
     from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, wsg50_fingers
-    from f2f_jax.geometry.hulls import finger_hulls
+    from f2f_jax.geometry.finger_tiling import finger_hulls
     from f2f_jax.geometry.pieces import object_pieces
     from f2f_jax.sim.scene import build_model
 
