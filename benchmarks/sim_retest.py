@@ -72,16 +72,14 @@ def retest_stats(first: np.ndarray, second: np.ndarray) -> dict:
 
 def _run_candidates(run_dir: Path, k: int, seed: int, workers):
     """The run's held-out objects, K design candidates each, their feasibility and object hulls."""
+    from f2f_jax.data import held_out_objects
     from f2f_jax.geometry import postprocess
     from f2f_jax.nets.inference import propose
     from f2f_jax.geometry.hull_pool import object_hulls_many
     from f2f_jax.train.checkpoint import load_models
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-    from evaluate import _held_out_objects
-
     models = load_models(run_dir)
-    objs, names = _held_out_objects(run_dir, models.config)
+    objs, names = held_out_objects(run_dir, models.config.geometry)
     lefts, rights = propose(models, objs, seed, k)
     feasible = postprocess(lefts, rights, models.config.geometry)
     hulls = object_hulls_many(list(objs), models.config, workers=workers)

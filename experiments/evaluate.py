@@ -53,26 +53,6 @@ def _run_config(run_dir: Path):
     return config_from_dict(json.loads(path.read_text())["config"])
 
 
-def _held_out_objects(run_dir: Path, cfg):
-    """The run's held-out object volumes [N, R, R, R] and names, in the run's order."""
-    import numpy as np
-
-    from f2f_jax.data import load_or_make_objects, object_split
-
-    directory = run_dir / "objects"
-    meta_path = directory / "source.json"
-    if not meta_path.exists():
-        raise FileNotFoundError(f"{directory} holds no object set (no source.json): is {run_dir} a "
-                                "co-training run directory?")
-    meta = json.loads(meta_path.read_text())
-    tsdfs, names = load_or_make_objects(meta["source"], meta["n"], meta["seed"], directory,
-                                        cfg.geometry, progress=False,
-                                        test_fraction=meta.get("test_fraction", 0.2))
-    index = {name: i for i, name in enumerate(names)}
-    test = [index[n] for n in object_split(directory)["test"] if n in index]
-    return tsdfs[np.array(test, int)], [names[i] for i in test]
-
-
 def _builtin_objects(n: int, seed: int, cfg):
     import numpy as np
     from tqdm.auto import tqdm
@@ -177,7 +157,8 @@ def main(argv=None) -> int:
         return _fail(str(exc))
 
     start = time.perf_counter()
-    from f2f_jax import evaluate as E
+    from f2f_jax import tables as E
+    from f2f_jax.data import held_out_objects
 
     run_dir = Path(args.run_dir).expanduser() if args.run_dir else None
     if run_dir is not None and not run_dir.is_dir():
@@ -196,7 +177,7 @@ def main(argv=None) -> int:
             return _fail(f"--fresh with --seed {args.seed}: the run made its built-in objects with "
                          "that seed, so they would not be new; pick another --seed")
         try:
-            objects, names = _held_out_objects(run_dir, cfg)
+            objects, names = held_out_objects(run_dir, cfg.geometry)
         except (FileNotFoundError, ValueError) as exc:
             return _fail(str(exc))
         what = f"held-out objects of {run_dir}"

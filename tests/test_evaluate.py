@@ -1,4 +1,4 @@
-"""The paper's tables (f2f_jax.evaluate) on a few built-in objects with the tiny config.
+"""The paper's tables (f2f_jax.tables) on a few built-in objects with the tiny config.
 
 The objects are a cylinder, a U-shape and a capsule (built-in 2, 3 and 9): their collision hulls
 take ~2 s together, and the flat WSG50 tips cannot lift them at mu 0.2 while their imprints can.
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from f2f_jax import config
-from f2f_jax import evaluate as E
+from f2f_jax import tables as E
 from f2f_jax.data import builtin_objects
 from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, wsg50_fingers
 from f2f_jax.sim import evaluate as simulate

@@ -195,7 +195,7 @@ def test_killed_make_dataset_driver_loses_and_duplicates_nothing(ray_cluster, tm
 
 
 def test_paper_table_on_ray_is_the_threaded_one(ray_cluster, triples, threaded, tiny_cfg):
-    from f2f_jax import evaluate as E
+    from f2f_jax import tables as E
 
     objs = triples[0][0:8:2]
     hulls = [object_pieces(o, tiny_cfg, cache_dir=False) for o in objs]

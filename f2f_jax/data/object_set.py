@@ -60,3 +60,19 @@ def load_or_make_objects(source: str, n: int | None, seed: int, directory, cfg: 
 
 def object_split(directory) -> dict[str, list[str]]:
     return load_split(Path(directory) / "split.json")
+
+
+def held_out_objects(run_dir, cfg: GeometryConfig | None = None) -> tuple[np.ndarray, list[str]]:
+    """A co-training run's held-out object volumes [N, R, R, R] and names, in the run's order (the
+    set in ``run_dir/objects``, remade from its record if its volumes are missing)."""
+    directory = Path(run_dir) / "objects"
+    meta_path = directory / "source.json"
+    if not meta_path.exists():
+        raise FileNotFoundError(f"{directory} holds no object set (no source.json): is {run_dir} a "
+                                "co-training run directory?")
+    meta = json.loads(meta_path.read_text())
+    tsdfs, names = load_or_make_objects(meta["source"], meta["n"], meta["seed"], directory, cfg,
+                                        progress=False, test_fraction=meta.get("test_fraction", 0.2))
+    index = {name: i for i, name in enumerate(names)}
+    test = [index[n] for n in object_split(directory)["test"] if n in index]
+    return tsdfs[np.array(test, int)], [names[i] for i in test]

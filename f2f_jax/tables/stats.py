@@ -1,0 +1,166 @@
+"""Statistics behind the tables: how well a fitness net ranks one object's designs, how the
+outcomes of neighbouring designs agree, and paired bootstrap gains."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from f2f_jax.config import Config
+from f2f_jax.designer import simulate_candidates
+from f2f_jax.geometry import postprocess
+from f2f_jax.nets.inference import LATENT_NOISE, predict, propose
+from f2f_jax.tables.designers import objects_array
+
+
+
+def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, float]:
+    """How well predicted success ranks several candidate designs of the same objects.
+
+    predicted: [N, K, 11] fitness-net probabilities; simulated: [N, K, 11] 0/1 outcomes of the
+    same candidates.  A candidate's score is its mean predicted probability, its value the number
+    of trials it passed.  Returns:
+
+    - ``spearman``: Spearman rank correlation of score and value within each object, averaged over
+      the objects whose candidates differ in value (nan when none do); ``objects_ranked`` counts them.
+    - ``trials_first``, ``trials_mean``, ``trials_picked``, ``trials_best``, ``trials_worst``:
+      trials passed (of 11) by candidate 0, by the average candidate, by the one the fitness net
+      scores highest, by the best and the worst simulated one (means over objects).
+    - ``grasp_auc``: AUC of the predicted grasp probability for the simulated grasp over all
+      N x K candidates pooled (nan when every grasp succeeded or every one failed); it rewards
+      telling easy objects from hard ones too, which ``spearman`` does not.
+
+    The gap between ``trials_picked`` and ``trials_mean`` is what the fitness net's guidance is
+    worth to a generator that climbs it; ``trials_best`` - ``trials_first`` is the room there is.
+    """
+    from scipy.stats import rankdata
+
+    p = np.asarray(predicted, np.float64)
+    s = np.asarray(simulated, np.float64)
+    if p.shape != s.shape or p.ndim != 3:
+        raise ValueError(f"predicted {p.shape} and simulated {s.shape}: expected two [N, K, 11] arrays")
+    score, value = p.mean(-1), s.sum(-1)
+    rhos = []
+    for sc, va in zip(score, value):
+        if np.ptp(va) == 0 or np.ptp(sc) == 0:
+            continue
+        rhos.append(np.corrcoef(rankdata(sc), rankdata(va))[0, 1])
+    rows = np.arange(len(score))
+    grasp, prob = s[..., 0].ravel(), p[..., 0].ravel()
+    pos, neg = prob[grasp == 1], prob[grasp == 0]
+    if len(pos) and len(neg):  # Mann-Whitney: P(score of a held grasp > score of a failed one)
+        ranks = rankdata(np.concatenate([pos, neg]))
+        auc = (ranks[: len(pos)].sum() - len(pos) * (len(pos) + 1) / 2) / (len(pos) * len(neg))
+    else:
+        auc = float("nan")
+    return {
+        "spearman": float(np.mean(rhos)) if rhos else float("nan"),
+        "objects_ranked": len(rhos),
+        "trials_first": float(value[:, 0].mean()),
+        "trials_mean": float(value.mean()),
+        "trials_picked": float(value[rows, score.argmax(1)].mean()),
+        "trials_best": float(value.max(1).mean()),
+        "trials_worst": float(value.min(1).mean()),
+        "grasp_auc": float(auc),
+    }
+
+
+def candidate_outcomes(models, objects, cfg: Config | None = None, *, candidates: int = 8,
+                       noise: float | None = None, key=0, backend: str = "mujoco",
+                       object_hulls=None, progress: bool | None = None,
+                       executor: str = "threads"):
+    """``f2f_jax.design``'s candidates for every object, all simulated.
+
+    Per object the generator's own output and ``candidates - 1`` latent perturbations (``noise``,
+    default ``nets.inference.LATENT_NOISE``), post-processed; infeasible ones score 0 by the protocol.
+    objects: [N, 40, 40, 40]; object_hulls: optional, one per object; executor: as in
+    ``sim.evaluate``.
+    Returns (lefts, rights [N, K, 40, 40, 40], feasible [N, K], simulated [N, K, 11] uint8).
+    """
+    if candidates < 1:
+        raise ValueError(f"candidates must be >= 1, got {candidates}")
+    cfg = cfg or models.config
+    objs = objects_array(objects, cfg.geometry.resolution)
+    lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
+    feasible = postprocess(lefts, rights, cfg.geometry)
+    simulated = simulate_candidates(dataclasses.replace(models, config=cfg), objs, lefts, rights,
+                                    feasible, backend, progress, object_hulls, executor=executor)
+    return lefts, rights, feasible, simulated
+
+
+def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: int = 16,
+                    noise: float | None = None, key=0, backend: str = "mujoco",
+                    object_hulls=None, progress: bool | None = None,
+                    executor: str = "threads") -> dict[str, float]:
+    """``ranking_stats`` of a trained run's fitness net on ``candidates`` designs per object.
+
+    The candidates are ``candidate_outcomes``' (the generator's own output and K - 1 latent
+    perturbations), all simulated and scored by the fitness net.  This is the measurement behind
+    the co-training's premise: a generator that climbs the fitness net can only improve on what
+    the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object.
+    """
+    if candidates < 2:
+        raise ValueError(f"candidates must be >= 2 to rank anything, got {candidates}")
+    cfg = cfg or models.config
+    objs = objects_array(objects, cfg.geometry.resolution)
+    lefts, rights, feasible, simulated = candidate_outcomes(
+        models, objs, cfg, candidates=candidates, noise=noise, key=key, backend=backend,
+        object_hulls=object_hulls, progress=progress, executor=executor)
+    predicted = predict(models, objs, lefts, rights)
+    n, k = feasible.shape
+    out = ranking_stats(predicted, simulated)
+    out.update(objects=n, candidates=k, feasible=float(feasible.mean()))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Is one generator better than another?  Paired over objects, on each one's design neighbourhood.
+# --------------------------------------------------------------------------------------------
+
+def neighbourhood_stats(simulated: np.ndarray) -> dict[str, float]:
+    """Summary of [N, K, 11] outcomes of K candidates per object (candidate 0: the generator's own).
+
+    ``trials_own`` / ``grasp_own``: trials passed (of 11) and grasp success of the own designs;
+    ``trials_mean`` / ``grasp_mean``: the same over all K candidates.  The K-candidate means score
+    the generator's output and its latent neighbourhood, not one 0/1 draw per object, so they
+    separate two generators with far fewer objects than the own designs alone do.
+    """
+    s = np.asarray(simulated, np.float64)
+    if s.ndim != 3:
+        raise ValueError(f"simulated {s.shape}: expected [N, K, 11]")
+    return {"trials_own": float(s[:, 0].sum(-1).mean()), "grasp_own": float(s[:, 0, 0].mean()),
+            "trials_mean": float(s.sum(-1).mean()), "grasp_mean": float(s[..., 0].mean()),
+            "objects": s.shape[0], "candidates": s.shape[1]}
+
+
+def paired_gain(after: np.ndarray, before: np.ndarray, *, n_boot: int = 10000,
+                seed: int = 0) -> dict[str, dict[str, float]]:
+    """How much ``after`` beats ``before`` on the same objects, with a bootstrap over objects.
+
+    after, before: [N, K, 11] simulated outcomes of two generators' K candidates on the same N
+    objects (K may differ).  For each measure (``trials_mean``, ``grasp_mean``, ``trials_own``,
+    ``grasp_own``, as in ``neighbourhood_stats``) the per-object difference is averaged; returned
+    per measure: before, after, diff, ci_low / ci_high (95% percentile bootstrap of the mean
+    difference, objects resampled ``n_boot`` times), better / worse (objects that moved).
+    """
+    a, b = np.asarray(after, np.float64), np.asarray(before, np.float64)
+    if a.ndim != 3 or b.ndim != 3 or a.shape[0] != b.shape[0] or a.shape[2] != b.shape[2]:
+        raise ValueError(f"after {a.shape} and before {b.shape}: expected [N, K, 11] outcomes of "
+                         "the same N objects")
+    per_object = {
+        "trials_mean": lambda s: s.sum(-1).mean(1), "grasp_mean": lambda s: s[..., 0].mean(1),
+        "trials_own": lambda s: s[:, 0].sum(-1), "grasp_own": lambda s: s[:, 0, 0],
+    }
+    rng = np.random.default_rng(seed)
+    resample = rng.integers(0, a.shape[0], (n_boot, a.shape[0]))
+    out = {}
+    for name, f in per_object.items():
+        d = f(a) - f(b)
+        boot = d[resample].mean(1)
+        lo, hi = np.percentile(boot, [2.5, 97.5])
+        out[name] = {"before": float(f(b).mean()), "after": float(f(a).mean()),
+                     "diff": float(d.mean()), "ci_low": float(lo), "ci_high": float(hi),
+                     "better": int((d > 0).sum()), "worse": int((d < 0).sum())}
+    return out
+
