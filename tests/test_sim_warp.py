@@ -73,11 +73,12 @@ def test_mesh_table_keeps_every_candidates_meshes(wb, sphere_models):
 
 
 def test_device_openings_follow_the_host_rule(wb, sphere_models, tiny_cfg):
-    """The approach's openings computed on the device equal scene.JawOpener's, per world, for
+    """The approach's openings computed on the device equal opening.JawOpener's, per world, for
     the object at rest and turned by 30 degrees."""
     import mujoco
 
-    from f2f_jax.sim.scene import JawOpener, object_quat
+    from f2f_jax.sim.opening import JawOpener
+    from f2f_jax.sim.scene import object_quat
 
     sim = wb.WarpGraspSimulator(tiny_cfg, devices=["cpu"])
     table = sim.prepare(sphere_models)

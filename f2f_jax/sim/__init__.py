@@ -6,10 +6,10 @@ triples in, [N, 11] uint8 outcomes out (``TRIAL_NAMES`` order).
 
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.sim.mujoco_cpu import BACKENDS, EvaluationInfo, evaluate
+from f2f_jax.sim.opening import JawOpener
 from f2f_jax.sim.protocol import GraspRunner, TrialResult, run_trials
 from f2f_jax.sim.scene import (
     GRIPPER_XML,
-    JawOpener,
     SceneIds,
     SceneLayout,
     build_model,

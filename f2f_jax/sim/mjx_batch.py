@@ -40,7 +40,9 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from f2f_jax.config import Config
-from f2f_jax.sim.scene import FINGER_BIT
+from f2f_jax.sim.opening import MJX_LINE_SPACING, line_grid, x_extent
+from f2f_jax.sim.protocol import SPIN_RADIUS, lift_targets
+from f2f_jax.sim.scene import FINGER_BIT, scene_ids
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -287,8 +289,6 @@ class MjxGraspSimulator:
     """
 
     def __init__(self, template: mujoco.MjModel, cfg: Config):
-        from f2f_jax.sim.protocol import lift_targets
-        from f2f_jax.sim.scene import scene_ids
 
         if cfg.sim.push_point != "com":
             raise ValueError("the MJX backend pushes at the centre of mass; push_point='origin' "
@@ -318,14 +318,7 @@ class MjxGraspSimulator:
         self.n_push_hold = s.steps(s.push_hold_time)
         targets = lift_targets(cfg)
         self.lift_ctrl = np.diff(targets) / s.timestep  # per step: exact chord of the profile
-        g = cfg.geometry
-        spacing = 0.0015
-        h = g.cube_size / 2
-        z0 = g.cube_size / 2 + g.rest_offset
-        ys = np.arange(-h, h + spacing / 2, spacing)
-        zs = np.arange(z0 - h, z0 + h + spacing / 2, spacing)
-        yy, zz = np.meshgrid(ys, zs, indexing="ij")
-        self.lines = np.stack([yy.ravel(), zz.ravel()], 1).astype(np.float32)
+        self.lines = line_grid(cfg, MJX_LINE_SPACING).astype(np.float32)
         self._programs: dict = {}
         self.compile_seconds = 0.0
 
@@ -354,19 +347,11 @@ class MjxGraspSimulator:
         """Union of the geoms' extents along x on every line: (lo [L], hi [L]), +-inf on a miss.
         planes: [G, F, 4] geom-local; xpos [G, 3]; xmat [G, 3, 3]."""
         y, z = jp.asarray(self.lines[:, 0]), jp.asarray(self.lines[:, 1])
-        eps = 1e-12
 
         def one(carry, geom):
             lo, hi = carry
             pl, pos, mat = geom
-            n = pl[:, :3] @ mat.T
-            d = pl[:, 3] - n @ pos
-            c = -(d[:, None] + n[:, 1:2] * y + n[:, 2:3] * z)
-            nx = n[:, 0:1]
-            bound = c / jp.where(jp.abs(nx) > eps, nx, 1.0)
-            upper = jp.where(nx > eps, bound, jp.inf).min(0)
-            lower = jp.where(nx < -eps, bound, -jp.inf).max(0)
-            ok = jp.all((jp.abs(nx) > eps) | (c >= 0), axis=0) & (lower <= upper)
+            lower, upper, ok = x_extent(pl, mat, pos, y, z, jp)
             return (jp.where(ok, jp.minimum(lo, lower), lo), jp.where(ok, jp.maximum(hi, upper), hi)), None
 
         init = (jp.full(y.shape, jp.inf), jp.full(y.shape, -jp.inf))
@@ -378,7 +363,7 @@ class MjxGraspSimulator:
         v = d.qvel[ids.object_dof: ids.object_dof + 6]
         other = d.qvel[np.concatenate([ids.jaw_dof, [self.template_mj.jnt_dofadr[
             self.template_mj.joint("lift").id]]])]
-        speed = jp.maximum(jp.maximum(jp.linalg.norm(v[:3]), jp.linalg.norm(v[3:]) * 0.052),
+        speed = jp.maximum(jp.maximum(jp.linalg.norm(v[:3]), jp.linalg.norm(v[3:]) * SPIN_RADIUS),
                            jp.abs(other).max())
         finite = jp.all(jp.isfinite(d.qpos)) & jp.all(jp.isfinite(d.qvel))
         return finite & (speed <= s.max_speed)

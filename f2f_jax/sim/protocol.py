@@ -32,7 +32,8 @@ import mujoco
 import numpy as np
 
 from f2f_jax.config import TRIAL_NAMES, Config
-from f2f_jax.sim.scene import JawOpener, SceneIds, finger_object_contacts, object_quat, scene_ids
+from f2f_jax.sim.opening import JawOpener
+from f2f_jax.sim.scene import SceneIds, finger_object_contacts, object_quat, scene_ids
 
 # Steps between health checks: 50 ms of simulated time, short enough that an exploding state is
 # caught before it does anything but fail its own trial, long enough that Python's overhead
@@ -47,7 +48,7 @@ LIFT_CHUNK_TIME = 0.01
 _STATE = mujoco.mjtState.mjSTATE_INTEGRATION
 # A body's angular speed counts as the speed of a point this far (m) from its centre: the
 # object cube's half diagonal.
-_SPIN_RADIUS = 0.052
+SPIN_RADIUS = 0.052
 # A dropped object counts as out of reach once the fingers' lowest point is this far (m) above
 # its highest point.
 DROP_CLEARANCE = 0.001
@@ -171,12 +172,12 @@ class GraspRunner:
 
     def speed(self) -> float:
         """The fastest motion in the scene (m/s): the object's linear speed, its angular speed
-        at ``_SPIN_RADIUS``, the jaws' and the lift's speeds."""
+        at ``SPIN_RADIUS``, the jaws' and the lift's speeds."""
         d, o = self.data, self.ids.object_dof
         # plain floats: this runs after every few steps, where numpy's per-call cost dominates
         vx, vy, vz, wx, wy, wz = d.qvel[o: o + 6].tolist()
         return max(math.sqrt(vx * vx + vy * vy + vz * vz),
-                   math.sqrt(wx * wx + wy * wy + wz * wz) * _SPIN_RADIUS,
+                   math.sqrt(wx * wx + wy * wy + wz * wz) * SPIN_RADIUS,
                    max(abs(v) for v in d.qvel[self._speed_dofs].tolist()))
 
     def advance(self, n: int, *, stop_below: float | None = None,

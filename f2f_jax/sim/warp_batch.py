@@ -12,7 +12,7 @@ bodies, joints and geom slots) and runs the trials as worlds of one MuJoCo Warp 
   that world.  MuJoCo Warp collides convex meshes by GJK/EPA with early outs, so pairs that do
   not touch cost little (unlike MJX's separating-axis test over every edge pair).
 * **The protocol of ``protocol.py``**, phase for phase and with its rules: place, settle,
-  approach (``scene.JawOpener``'s rule from each world's settled pose, on the device: a kernel
+  approach (``opening.JawOpener``'s rule from each world's settled pose, on the device: a kernel
   over every world and line of its grid, then its back-off by exact distances from collision
   passes with a margin; ``approach="host"`` runs ``JawOpener`` itself, ~20 ms of a host core
   per world), close, the lift profile, hold, the held
@@ -59,8 +59,9 @@ except ImportError as exc:  # pragma: no cover - exercised where the extra is mi
         f"backend='warp' needs MuJoCo Warp ({exc.name} is not installed): "
         'pip install -e ".[warp]"') from exc
 
-from f2f_jax.sim.protocol import CHECK_EVERY, _SPIN_RADIUS, lift_targets
-from f2f_jax.sim.scene import JawOpener, scene_ids
+from f2f_jax.sim.protocol import CHECK_EVERY, SPIN_RADIUS, lift_targets
+from f2f_jax.sim.opening import BACKOFF_ROUNDS, JawOpener
+from f2f_jax.sim.scene import scene_ids
 
 log = logging.getLogger(__name__)
 
@@ -97,9 +98,9 @@ ROWS_PER_WORLD = 1024
 # buffers above take more); the step's collision buffers come on top.  3 MB is a guess with room until it is measured on a GPU; chunks keep
 # within 60% of a device's memory.
 BYTES_PER_WORLD = 3 * 2**20
-# Where the approach's openings are computed: "device" (``scene.JawOpener``'s rule on the
+# Where the approach's openings are computed: "device" (``opening.JawOpener``'s rule on the
 # device: a kernel over every world and line of its grid, then its back-off by exact
-# distances, from collision passes with a margin), or "host" (``scene.JawOpener`` itself, per
+# distances, from collision passes with a margin), or "host" (``opening.JawOpener`` itself, per
 # world: ~20 ms of a host core each).
 APPROACHES = ("device", "host")
 # Overflows that lose pairs, contacts or constraint rows: the world's physics is wrong.  The
@@ -144,7 +145,7 @@ def _span(dataid: wp.array2d(dtype=int), planes: wp.array2d(dtype=wp.vec4),
           xpos: wp.array2d(dtype=wp.vec3), xmat: wp.array2d(dtype=wp.mat33), w: int,
           y: float, z: float):
     """Union of the geoms' extents along x on the line (y, z): (lo, hi), (+big, -big) on a
-    miss (``scene.JawOpener._intervals``, one line, one world)."""
+    miss (``opening.JawOpener._intervals``, one line, one world)."""
     lo = float(1.0e30)
     hi = float(-1.0e30)
     for i in range(geoms.shape[0]):
@@ -182,7 +183,7 @@ def _clearance(dataid: wp.array2d(dtype=int), planes: wp.array2d(dtype=wp.vec4),
                fxmat: wp.array2d(dtype=wp.mat33), lines: wp.array(dtype=wp.vec2),
                need: wp.array2d(dtype=float)):
     """need[w] = max over lines of (left reach - object's near side, object's far side - right
-    reach): the openings less the margin, as ``scene.JawOpener`` computes them.  Fingers at
+    reach): the openings less the margin, as ``opening.JawOpener`` computes them.  Fingers at
     their jaw-0 poses (fxpos, fxmat), the object where it lies now (xpos, xmat)."""
     w, k = wp.tid()
     y = lines[k][0]
@@ -480,7 +481,7 @@ class WarpGraspSimulator:
             qpos, qvel = ch.get("qpos"), ch.get("qvel")
             v = qvel[:, ids.object_dof: ids.object_dof + 6]
             speed = np.maximum.reduce([np.linalg.norm(v[:, :3], axis=1),
-                                       np.linalg.norm(v[:, 3:], axis=1) * _SPIN_RADIUS,
+                                       np.linalg.norm(v[:, 3:], axis=1) * SPIN_RADIUS,
                                        np.abs(qvel[:, self._speed_dofs]).max(1)])
             finite = np.isfinite(qpos).all(1) & np.isfinite(qvel).all(1)
             # a world whose pairs, contacts or constraint rows overflowed their buffers lost some
@@ -508,7 +509,7 @@ class WarpGraspSimulator:
 
     # ---------------------------------------------------------------- programs
     def _device_openings(self, ch: _Chunk) -> np.ndarray:
-        """[W, 2] jaw openings by ``scene.JawOpener``'s rule, run on the chunk's device: clear
+        """[W, 2] jaw openings by ``opening.JawOpener``'s rule, run on the chunk's device: clear
         of the object by ``open_margin`` along the closing axis on every line, clipped to the
         joint range, the lower limit where a jaw's finger meets no line of the object; then
         opened further wherever a finger is still nearer the object than half the margin."""
@@ -528,7 +529,7 @@ class WarpGraspSimulator:
         # JawOpener's back-off: lines 1 mm apart can miss a thin spike, and an imprint's rim can
         # come closer sideways than along the lines; open by what the exact distance lacks
         q = ch.get("qpos")
-        for _ in range(8):
+        for _ in range(BACKOFF_ROUNDS):
             q[:, ids.jaw_qpos] = openings
             ch.set_state(qpos=q)
             lack = margin / 2 - ch.finger_distance(ids, margin)
