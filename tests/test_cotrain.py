@@ -20,7 +20,8 @@ import pytest
 from f2f_jax import config
 from f2f_jax.errors import CheckpointError
 from f2f_jax.train.checkpoint import Checkpoints, config_from_dict, config_to_dict, load_models
-from f2f_jax.train.cotrain import CoTrainRun, NaNLossError, _check_finite
+from f2f_jax.train.cotrain import CoTrainRun
+from f2f_jax.train.epochs import NaNLossError, check_finite
 
 ROOT = Path(__file__).resolve().parents[1]
 CYCLES = 3
@@ -187,7 +188,7 @@ def test_bad_command_lines_fail_cleanly(uninterrupted, tmp_path, capsys):
 
 def test_nan_loss_names_the_step():
     with pytest.raises(NaNLossError, match="step 12"):
-        _check_finite(np.array([0.5, 0.4, np.nan]), "fn", 10)
+        check_finite(np.array([0.5, 0.4, np.nan]), "fn", 10)
 
 
 @pytest.mark.parametrize("name", sorted(config.CONFIGS))

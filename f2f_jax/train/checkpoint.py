@@ -30,6 +30,7 @@ import orbax.checkpoint as ocp
 
 from f2f_jax.config import SIM_PRESETS, Config, GeometryConfig, NetConfig, SimConfig, TrainConfig
 from f2f_jax.errors import CheckpointError
+from f2f_jax.nets.inference import Models
 
 log = logging.getLogger(__name__)
 
@@ -153,16 +154,25 @@ class Checkpoints:
                 log.warning(msg)
         return None
 
+    def restore_like(self, fresh: Any) -> tuple[Any, dict | None]:
+        """The newest checkpoint's state in the pytree types of ``fresh`` (a state of the same
+        layout, e.g. before any step) and its meta; ``(fresh, None)`` when there is none."""
+        abstract = jax.tree.map(lambda a: jax.ShapeDtypeStruct(np.shape(a), np.asarray(a).dtype), fresh)
+        got = self.restore(abstract) if self.steps() else None
+        if got is None:
+            return fresh, None
+        restored, _, meta = got
+        # restored leaves come back as numpy arrays in the saved structure; rebuild the pytree types
+        return jax.tree.unflatten(jax.tree.structure(fresh), jax.tree.leaves(restored)), meta
+
 
 def load_models(run_dir=None):
     """The generator and fitness net of the newest complete checkpoint of a co-training run.
 
     run_dir: default ``$F2F_RUN_DIR`` or ``runs/cotrain``.
-    Returns ``f2f_jax.train.state.Models``.  Raises CheckpointError, naming the command that makes
+    Returns ``f2f_jax.nets.inference.Models``.  Raises CheckpointError, naming the command that makes
     a checkpoint, when the directory holds none that can be read.
     """
-    from f2f_jax.train.state import Models
-
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir()
     ckpt_dir = run_dir / "checkpoints"
     if not ckpt_dir.is_dir() or not any(ckpt_dir.iterdir()):

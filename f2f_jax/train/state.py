@@ -42,6 +42,17 @@ def optimizer(tcfg: TrainConfig) -> optax.GradientTransformation:
     return optax.adamw(tcfg.lr, weight_decay=tcfg.weight_decay)
 
 
+def generator_optimizer(cfg: Config) -> optax.GradientTransformation:
+    """Adam on the embedding net only: the pretrained encoder and decoder stay frozen (paper)."""
+    opt = optimizer(cfg.train)
+
+    def labels(params):
+        return {k: jax.tree.map(lambda _, k=k: "train" if k == "embedding" else "freeze", v)
+                for k, v in params.items()}
+
+    return optax.multi_transform({"train": opt, "freeze": optax.set_to_zero()}, labels)
+
+
 def new_state(variables: dict, opt: optax.GradientTransformation) -> TrainState:
     params = variables["params"]
     return TrainState(params=params, batch_stats=variables.get("batch_stats", {}),
@@ -82,3 +93,25 @@ def init_models(cfg: Config, seed: int = 0, objectives: str = "full") -> Models:
     return Models(config=cfg, generator=init_generator(cfg, seed), fitness=init_fitness(cfg, seed + 1),
                   objectives=objectives, source="random init")
 
+
+def fresh_run_state(cfg: Config, seed: int) -> dict:
+    """A co-training run's state before any step: the shape VAE's, the fitness net's and the
+    generator's ``TrainState`` (seeds ``seed``, +1, +2) and ``key``, the run's base PRNG key data
+    (kept in checkpoints for their layout; the run derives its keys from the seed)."""
+    return {
+        "ae": new_state(init_autoencoder(cfg, seed), optimizer(cfg.train)),
+        "fn": new_state(init_fitness(cfg, seed + 1), optimizer(cfg.train)),
+        "gn": new_state(init_generator(cfg, seed + 2), generator_optimizer(cfg)),
+        "key": jax.random.key_data(jax.random.key(seed)),
+    }
+
+
+def with_codec_of(gn: TrainState, ae: TrainState) -> TrainState:
+    """The generator's state with the shape VAE's encoder and decoder (parameters and BatchNorm
+    statistics) in place of its own: the generator's frozen codec is the pretrained VAE's."""
+    params, stats = dict(gn.params), dict(gn.batch_stats)
+    for part in ("encoder", "decoder"):
+        # copies: the generator's state is donated to its steps, the VAE's must survive
+        params[part] = jax.tree.map(jnp.copy, ae.params[part])
+        stats[part] = jax.tree.map(jnp.copy, ae.batch_stats[part])
+    return gn.replace(params=params, batch_stats=stats)

@@ -28,7 +28,7 @@ from f2f_jax.train.losses import (
     reconstruction_mse,
     vae_loss,
 )
-from f2f_jax.train.state import TrainState, optimizer
+from f2f_jax.train.state import TrainState, generator_optimizer, optimizer
 
 Step = Callable[..., tuple[TrainState, dict[str, jax.Array]]]
 
@@ -149,17 +149,6 @@ def fn_eval(cfg: Config) -> Callable:
 
 
 # -- stage 3: generator, pretrained on imprint latents ------------------------------------------
-def generator_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Adam on the embedding net only: the pretrained encoder and decoder stay frozen (paper)."""
-    opt = optimizer(cfg.train)
-
-    def labels(params):
-        return {k: jax.tree.map(lambda _, k=k: "train" if k == "embedding" else "freeze", v)
-                for k, v in params.items()}
-
-    return optax.multi_transform({"train": opt, "freeze": optax.set_to_zero()}, labels)
-
-
 def _imprint_distance(model: FingerGenerator, variables, zl, zr, left, right) -> jax.Array:
     """Latent MSE between the embedding's finger latents (zl, zr) and the frozen encoder's means of
     the imprint fingers (left, right): the generator's pretraining loss and its co-training anchor."""
@@ -259,3 +248,15 @@ def generate_batched(net_cfg, variables: dict, objects: np.ndarray,
         lefts.append(np.asarray(left, np.float32)[: len(chunk)])
         rights.append(np.asarray(right, np.float32)[: len(chunk)])
     return np.concatenate(lefts), np.concatenate(rights)
+
+
+def reconstruction_iou(cfg: Config, ae_variables: dict, volumes: np.ndarray) -> float:
+    """Mean IoU of the solid voxels (TSDF < 0) of volumes [N, R, R, R] and the shape VAE's
+    reconstructions of them, ``cfg.train.ae_batch_size`` volumes per call."""
+    f, bs = ae_reconstruct(cfg), cfg.train.ae_batch_size
+    recon = np.concatenate([np.asarray(f(ae_variables, shard(volumes[s:s + bs])))
+                            for s in range(0, len(volumes), bs)])
+    a, b = volumes < 0, recon < 0
+    inter = (a & b).sum(axis=(1, 2, 3))
+    union = np.maximum((a | b).sum(axis=(1, 2, 3)), 1)
+    return float(np.mean(inter / union))

@@ -1,0 +1,123 @@
+"""A co-training run's data: its object set and split, the pretraining grasp dataset, and the
+held-out baselines, each made once into the run directory and read back on a resume.
+
+Rows are read from the grasp store with their volumes as float16 (the store's precision, half the
+host memory of float32); batches are cast on their way to the device.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from f2f_jax.config import Config
+from f2f_jax.data import load_or_make_objects, object_split
+from f2f_jax.data.sources import wsg_fmf_fingers
+from f2f_jax.dataset import GraspStore, build_grasp_dataset
+from f2f_jax.errors import F2FError
+from f2f_jax.geometry import imprint_fingers, wsg50_fingers
+
+log = logging.getLogger(__name__)
+
+BASELINES = ("imprint", "wsg50")  # flat pads, as the store's kind "wsg50" has always been
+FMF_KIND = "wsg50-fmf"  # the paper's WSG50 fingers (Schunk WSG-FMF), with the pybullet extra
+ROW_FIELDS = ("object", "left", "right", "outcome", "kind", "name", "cycle")
+# (objects [N, R, R, R], lefts, rights, what) -> outcomes [N, 11]: the run's simulator
+Simulate = Callable[[np.ndarray, np.ndarray, np.ndarray, str], np.ndarray]
+
+
+@dataclass
+class RunData:
+    """objects: [N, R, R, R] float32 volumes of the whole set; names: theirs; train_idx, test_idx:
+    the split as indices; eval_idx: the held-out objects the generator is evaluated on; store: the
+    run's grasp store; pre: the pretraining rows (``read_rows`` of cycle -1)."""
+
+    objects: np.ndarray
+    names: list[str]
+    train_idx: np.ndarray
+    test_idx: np.ndarray
+    eval_idx: np.ndarray
+    store: GraspStore
+    pre: dict[str, np.ndarray]
+
+
+def read_rows(store: GraspStore, select: Callable[[int, str], bool]) -> dict[str, np.ndarray]:
+    """Store rows whose (cycle, kind) pass ``select``, as ``ROW_FIELDS`` arrays; volumes float16."""
+    meta = store.read(("cycle", "kind"))
+    keep = np.flatnonzero([select(int(c), str(k)) for c, k in zip(meta["cycle"], meta["kind"])])
+    if keep.size == 0:
+        return {f: np.zeros((0,), np.float32) for f in ROW_FIELDS}
+    # rows of one selection are contiguous chunks in practice; read the covering range once
+    got = store.read(ROW_FIELDS, start=int(keep[0]), stop=int(keep[-1]) + 1)
+    local = keep - keep[0]
+    out = {k: v[local] for k, v in got.items()}
+    for k in ("object", "left", "right"):
+        out[k] = out[k].astype(np.float16)  # exact: the store holds float16
+    return out
+
+
+def prepare_run_data(run_dir: Path, cfg: Config, source: str, simulate: Simulate, *,
+                     backend: str, executor: str, progress: bool) -> RunData:
+    """Objects, split, the grasp dataset and the held-out baselines of a run (each resumable)."""
+    t = cfg.train
+    n = t.n_objects if source == "builtin" else None
+    tsdfs, names = load_or_make_objects(source, n, t.seed, run_dir / "objects", cfg.geometry,
+                                        progress=progress, test_fraction=t.test_fraction)
+    split = object_split(run_dir / "objects")
+    index = {name: i for i, name in enumerate(names)}
+    train_idx = np.array([index[n] for n in split["train"] if n in index])
+    test_idx = np.array([index[n] for n in split["test"] if n in index])
+    if len(train_idx) < 2 or len(test_idx) < 1:
+        raise F2FError(f"{len(names)} usable objects give {len(train_idx)} training and "
+                       f"{len(test_idx)} held-out objects; need at least 2 and 1")
+    store = GraspStore(run_dir / "store")
+    store.clean_temporary()
+    build_grasp_dataset(tsdfs[train_idx], [names[i] for i in train_idx], store, cfg=cfg, seed=t.seed,
+                        n_cut=t.cut_pairs, backend=backend, progress=progress, executor=executor)
+    data = RunData(objects=tsdfs, names=names, train_idx=train_idx, test_idx=test_idx,
+                   eval_idx=test_idx[: t.eval_objects], store=store, pre={})
+    simulate_baselines(data, cfg, simulate)
+    simulate_fmf_baseline(data, cfg, simulate)
+    data.pre = read_rows(store, lambda c, k: c == -1)
+    return data
+
+
+def simulate_baselines(data: RunData, cfg: Config, simulate: Simulate) -> None:
+    """Imprint and flat-pad pairs on the held-out objects, simulated once into the store."""
+    if "heldout-baselines" in data.store.done_keys():
+        return
+    objs, lefts, rights, kinds, names = [], [], [], [], []
+    wl, wr = wsg50_fingers(cfg.geometry)
+    for i in data.test_idx:
+        il, ir = imprint_fingers(data.objects[i], cfg.geometry)
+        for kind, (left, right) in zip(BASELINES, ((il, ir), (wl, wr))):
+            objs.append(data.objects[i])
+            lefts.append(left)
+            rights.append(right)
+            kinds.append(kind)
+            names.append(data.names[i])
+    out = simulate(np.stack(objs), np.stack(lefts), np.stack(rights), "held-out baselines")
+    data.store.append(np.stack(objs), np.stack(lefts), np.stack(rights), out, kind=kinds,
+                      names=names, keys=["heldout-baselines"], cycle=-2)
+
+
+def simulate_fmf_baseline(data: RunData, cfg: Config, simulate: Simulate) -> None:
+    """The WSG-FMF fingers on the held-out objects, simulated once into the store (its own chunk:
+    runs made before it, or without the pybullet extra, gain it when resumed with it)."""
+    if f"heldout-{FMF_KIND}" in data.store.done_keys():
+        return
+    try:
+        left, right = wsg_fmf_fingers(cfg.geometry)
+    except ImportError as exc:  # MissingExtraError
+        log.info("no %s baseline: %s", FMF_KIND, exc)
+        return
+    objs = np.stack([data.objects[i] for i in data.test_idx])
+    lefts, rights = np.repeat(left[None], len(objs), 0), np.repeat(right[None], len(objs), 0)
+    out = simulate(objs, lefts, rights, "held-out WSG-FMF baseline")
+    data.store.append(objs, lefts, rights, out, kind=FMF_KIND,
+                      names=[data.names[i] for i in data.test_idx],
+                      keys=[f"heldout-{FMF_KIND}"], cycle=-2)
