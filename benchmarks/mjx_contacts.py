@@ -38,7 +38,7 @@ from f2f_jax.geometry import imprint_fingers  # noqa: E402
 from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
 from f2f_jax.geometry.hulls import with_max_vertices
 from f2f_jax.geometry.pieces import object_pieces_many  # noqa: E402
-from f2f_jax.sim import mjx_batch  # noqa: E402
+from f2f_jax.sim import mjx_batch, mjx_collision  # noqa: E402
 from f2f_jax.sim.mujoco_cpu import batched_model_options  # noqa: E402
 from f2f_jax.sim.protocol import GraspRunner  # noqa: E402
 from f2f_jax.sim.scene import build_model  # noqa: E402
@@ -80,7 +80,7 @@ def mjx_rate(models, states, cfg, steps: int):
 
     prog = jax.jit(jax.vmap(run))
     args = (batch.fields, batch.convex, *(states[k].astype(np.float32) for k in _STATE))
-    with mjx_batch.merged_mesh_collisions():
+    with mjx_collision.merged_mesh_collisions():
         t = time.perf_counter()
         jax.block_until_ready(prog(*args))
         first = time.perf_counter() - t

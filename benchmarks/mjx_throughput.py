@@ -24,7 +24,7 @@ import numpy as np
 from f2f_jax import config
 from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.hulls import Hulls
-from f2f_jax.sim import mjx_batch
+from f2f_jax.sim import mjx_batch, mjx_collision
 from f2f_jax.sim.protocol import run_trials
 from f2f_jax.sim.scene import build_model
 
@@ -49,8 +49,8 @@ def load_models(path: Path, cfg):
     models = []
     for v, c, left, right in zip(data["ohv"], data["ohc"], data["left"], data["right"]):
         models.append(build_model(Hulls(v, c), finger_hulls(left, cfg), finger_hulls(right, cfg), cfg,
-                                  pad_collides=True, max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
-                                  max_contact_points=mjx_batch.MAX_CONTACT_POINTS))
+                                  pad_collides=True, max_geom_pairs=mjx_collision.MAX_GEOM_PAIRS,
+                                  max_contact_points=mjx_collision.MAX_CONTACT_POINTS))
     return models
 
 

@@ -137,6 +137,8 @@ class SimConfig:
 TRIAL_NAMES: tuple[str, ...] = (
     "grasp", "S1", "S2", "S3", "S4", "R-30", "R-20", "R-10", "R+10", "R+20", "R+30",
 )
+# The simulator backends ``sim.evaluate`` runs: plain MuJoCo (threads), MJX, MuJoCo Warp.
+BACKENDS: tuple[str, ...] = ("mujoco", "mjx", "warp")
 
 
 @dataclass(frozen=True)

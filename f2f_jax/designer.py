@@ -37,13 +37,12 @@ from pathlib import Path
 
 import numpy as np
 
-from f2f_jax.config import TRIAL_NAMES, GeometryConfig
+from f2f_jax.config import BACKENDS, TRIAL_NAMES, GeometryConfig
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import check_tsdf, export_finger_stl, imprint_fingers, postprocess
 from f2f_jax.nets import RESOLUTION
 from f2f_jax.nets.inference import LATENT_NOISE, Models, as_key, predict, propose
 
-BACKENDS = ("mujoco", "mjx", "warp")
 # The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
 # Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
 IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (

@@ -37,7 +37,7 @@ FORBIDDEN = {
     "dataset": {"jax", "flax", "optax", "orbax", "matplotlib"},
 }
 # Modules that run MJX (JAX on purpose): the accelerator backend and its pieces.
-JAX_IN_SIM = {"sim/mjx_batch.py"}
+JAX_IN_SIM = {"sim/mjx_batch.py", "sim/mjx_collision.py"}
 SCRIPTS = {"experiments", "benchmarks", "tests"}
 
 

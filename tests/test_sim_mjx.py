@@ -7,7 +7,7 @@ import pytest
 from f2f_jax.geometry import imprint_fingers, wsg50_fingers
 from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.coacd_pieces import object_hulls
-from f2f_jax.sim import mjx_batch
+from f2f_jax.sim import mjx_batch, mjx_collision
 from f2f_jax.sim.protocol import run_trials
 from f2f_jax.sim.scene import build_model
 
@@ -18,26 +18,27 @@ def sphere_models(sphere_tsdf, tiny_cfg):
     models = []
     for left, right in (imprint_fingers(sphere_tsdf), wsg50_fingers()):
         models.append(build_model(hulls, finger_hulls(left, tiny_cfg), finger_hulls(right, tiny_cfg),
-                                  tiny_cfg, pad_collides=True, max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
-                                  max_contact_points=mjx_batch.MAX_CONTACT_POINTS))
+                                  tiny_cfg, pad_collides=True, max_geom_pairs=mjx_collision.MAX_GEOM_PAIRS,
+                                  max_contact_points=mjx_collision.MAX_CONTACT_POINTS))
     return models
 
 
 def test_convex_data_has_fixed_sizes_for_any_piece():
-    sizes = mjx_batch.ConvexSizes.for_vertices(32)
+    sizes = mjx_collision.ConvexSizes.for_vertices(32)
     rng = np.random.default_rng(0)
     shapes = set()
     for n in (4, 8, 32):
-        c = mjx_batch.convex_data(rng.normal(size=(n, 3)), sizes)
+        c = mjx_collision.convex_data(rng.normal(size=(n, 3)), sizes)
         shapes.add(tuple(np.shape(x) for x in (c.vert, c.face, c.face_normal, c.edge, c.edge_face_normal)))
         # outward unit normals: every vertex lies on or behind every face plane
         d = np.einsum("fk,vk->fv", c.face_normal, c.vert) - np.einsum("fk,fk->f", c.face_normal, c.face[:, 0])[:, None]
         assert d.max() < 1e-5
     assert len(shapes) == 1
-    box = mjx_batch.convex_data(np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T, sizes)
+    box = mjx_collision.convex_data(np.array(np.meshgrid([0, 1], [0, 1], [0, 1])).reshape(3, -1).T, sizes)
     assert len({tuple(np.round(n, 6)) for n in box.face_normal}) == 6  # coplanar triangles merged
 
 
+@pytest.mark.slow
 def test_mjx_grasp_agrees_with_mujoco_and_compiles_once(sphere_models, tiny_cfg):
     cpu = [run_trials(m, tiny_cfg).outcome[0] for m in sphere_models]
     assert cpu == [1, 0]  # imprint holds the sphere, flat tips at mu 0.2 drop it

@@ -19,13 +19,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from f2f_jax.config import Config, with_sim_preset
+from f2f_jax.config import BACKENDS, Config, with_sim_preset
 from f2f_jax.errors import F2FError, VolumeError
-from f2f_jax.geometry.fingers import feasibility_report
 from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.fingers import feasibility_report
 from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.pieces import object_pieces_many as make_object_hulls_many
 from f2f_jax.geometry.tsdf import check_tsdf
+from f2f_jax.sim import ray_executor  # imports Ray itself only when asked to run on it
 from f2f_jax.sim.protocol import TrialResult, run_trials
 from f2f_jax.sim.scene import build_model
 
@@ -34,7 +35,6 @@ log = logging.getLogger(__name__)
 # Above this many candidates a progress bar is shown when progress=None.
 _AUTO_PROGRESS = 32
 EXECUTORS = ("threads", "ray")
-BACKENDS = ("mujoco", "mjx", "warp")
 
 
 @dataclass
@@ -150,46 +150,17 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     Raises VolumeError (naming the index) for volumes of the wrong shape, NaN values or an empty
     object, ValueError for inputs of different lengths.
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
-    if executor not in EXECUTORS:
-        raise ValueError(f"unknown executor {executor!r}; choose one of {EXECUTORS}")
-    if executor == "ray" and backend != "mujoco":
-        raise ValueError(f"executor='ray' distributes the 'mujoco' backend; the {backend!r} "
-                         "backend batches every candidate on this machine's accelerators")
-    if executor == "ray":
-        from f2f_jax.sim import ray_executor
-
-        ray_executor.require_ray()  # before any work: a missing extra is the first thing said
-    if backend == "warp":  # before any work: importing it raises MissingExtraError without warp
-        importlib.import_module("f2f_jax.sim.warp_batch")
+    _check_choices(backend, executor)
     cfg = cfg or Config()
     if preset is not None:
         cfg = with_sim_preset(cfg, preset)
-    g, n_trials = cfg.geometry, cfg.sim.n_trials
-    r = g.resolution
-    objs = _as_volumes(objects, "objects", r)
-    lefts = _as_volumes(lefts, "lefts", r)
-    rights = _as_volumes(rights, "rights", r)
+    objs, lefts, rights, feasible = _checked_triples(objects, lefts, rights, cfg.geometry)
     n = len(objs)
-    if not (len(lefts) == len(rights) == n):
-        raise ValueError(f"objects, lefts and rights must have one entry per candidate; got "
-                         f"{n}, {len(lefts)} and {len(rights)}")
-    objs = [check_tsdf(o, f"objects[{i}]", g) for i, o in enumerate(objs)]
     offsets = _object_offsets(object_xy, n)
     if offsets is not None and backend != "mujoco":
         raise NotImplementedError("evaluate(object_xy=...) is implemented for backend='mujoco' "
                                   f"only; the {backend!r} batch places every object at the grasp "
                                   "location")
-    feasible = np.ones(n, bool)
-    for name, fingers in (("lefts", lefts), ("rights", rights)):
-        for i, f in enumerate(fingers):
-            # Shape and NaN errors raise; an empty or disconnected finger is merely infeasible.
-            try:
-                feasible[i] &= feasibility_report(f, g)["feasible"]
-            except VolumeError as exc:
-                raise VolumeError(f"{name}[{i}]: {exc}") from None
-
     hull_list = None  # None: made below by cfg.geometry.object_method
     if object_hulls is not None:
         hull_list = [object_hulls] * n if isinstance(object_hulls, Hulls) else list(object_hulls)
@@ -214,18 +185,62 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         _run_threads(objs, lefts, rights, todo, cfg, results, threads=threads, show=show,
                      hull_list=hull_list, offsets=offsets,
                      cache_dir=cache_dir, progress=progress)
+    outcomes, info = _gathered(results, todo, feasible, cfg.sim.n_trials, time.perf_counter() - start)
+    return (outcomes, info) if return_info else outcomes
+
+
+
+def _check_choices(backend: str, executor: str) -> None:
+    """Refuse unknown or unsupported backend/executor choices, and a missing extra, before any work."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    if executor not in EXECUTORS:
+        raise ValueError(f"unknown executor {executor!r}; choose one of {EXECUTORS}")
+    if executor == "ray" and backend != "mujoco":
+        raise ValueError(f"executor='ray' distributes the 'mujoco' backend; the {backend!r} "
+                         "backend batches every candidate on this machine's accelerators")
+    if executor == "ray":
+        ray_executor.require_ray()  # before any work: a missing extra is the first thing said
+    if backend == "warp":  # before any work: importing it raises MissingExtraError without warp
+        importlib.import_module("f2f_jax.sim.warp_batch")
+
+
+def _checked_triples(objects, lefts, rights, g) -> tuple[list, list, list, np.ndarray]:
+    """The triples as lists of [R, R, R] volumes, and which are feasible [N] bool.  Raises
+    VolumeError (naming the index) for a bad volume, ValueError for lists of different lengths;
+    an empty or disconnected finger is merely infeasible."""
+    r = g.resolution
+    objs = _as_volumes(objects, "objects", r)
+    lefts = _as_volumes(lefts, "lefts", r)
+    rights = _as_volumes(rights, "rights", r)
+    n = len(objs)
+    if not (len(lefts) == len(rights) == n):
+        raise ValueError(f"objects, lefts and rights must have one entry per candidate; got "
+                         f"{n}, {len(lefts)} and {len(rights)}")
+    objs = [check_tsdf(o, f"objects[{i}]", g) for i, o in enumerate(objs)]
+    feasible = np.ones(n, bool)
+    for name, fingers in (("lefts", lefts), ("rights", rights)):
+        for i, f in enumerate(fingers):
+            try:
+                feasible[i] &= feasibility_report(f, g)["feasible"]
+            except VolumeError as exc:
+                raise VolumeError(f"{name}[{i}]: {exc}") from None
+    return objs, lefts, rights, feasible
+
+
+def _gathered(results: list, todo: np.ndarray, feasible: np.ndarray, n_trials: int,
+              seconds: float) -> tuple[np.ndarray, "EvaluationInfo"]:
+    """Outcomes [N, 11] uint8 (zeros where nothing was simulated) and the EvaluationInfo."""
+    n = len(results)
     errors: dict[int, str] = {}
     for i in todo:
         if results[i].error is not None:
             errors[int(i)] = results[i].error
             log.warning("candidate %d not simulated: %s", i, results[i].error)
-
     outcomes = np.zeros((n, n_trials), np.uint8)
     for i, res in enumerate(results):
         if res is not None:
             outcomes[i] = res.outcome
-    if not return_info:
-        return outcomes
 
     def field(name):
         return np.array([getattr(res, name) if res is not None else 0 for res in results],
@@ -234,10 +249,8 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     info = EvaluationInfo(
         steps=field("steps"), unstable=field("unstable"), infeasible=~feasible,
         failed=np.array([i in errors for i in range(n)], bool), errors=errors,
-        initial_contacts=field("initial_contacts"), seconds=time.perf_counter() - start,
-        results=results)
+        initial_contacts=field("initial_contacts"), seconds=seconds, results=results)
     return outcomes, info
-
 
 def _run_threads(objs, lefts, rights, todo, cfg, results, *, threads, show, hull_list, offsets,
                  cache_dir, progress) -> None:
@@ -270,10 +283,10 @@ def batched_model_options(backend: str) -> dict:
     "warp"): one layout for all (placeholders that collide), and MJX's contact caps."""
     options = dict(pad_collides=True)
     if backend == "mjx":
-        from f2f_jax.sim import mjx_batch
+        from f2f_jax.sim import mjx_collision  # JAX: only for the MJX backend
 
-        options.update(max_geom_pairs=mjx_batch.MAX_GEOM_PAIRS,
-                       max_contact_points=mjx_batch.MAX_CONTACT_POINTS)
+        options.update(max_geom_pairs=mjx_collision.MAX_GEOM_PAIRS,
+                       max_contact_points=mjx_collision.MAX_CONTACT_POINTS)
     return options
 
 

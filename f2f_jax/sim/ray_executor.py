@@ -35,10 +35,12 @@ import warnings
 from collections.abc import Sequence
 
 import numpy as np
+from tqdm.auto import tqdm
 
 from f2f_jax.config import Config
 from f2f_jax.errors import F2FError, MissingExtraError
 from f2f_jax.geometry.hulls import Hulls
+from f2f_jax.geometry.pieces import cached_pieces, keep_pieces, object_pieces
 from f2f_jax.sim.protocol import TrialResult
 
 log = logging.getLogger(__name__)
@@ -100,8 +102,6 @@ def default_task_size(n: int, cpus: int) -> int:
 def pieces_task(obj: np.ndarray, geometry) -> Hulls | str:
     """One object's collision pieces (no cache on the worker: the driver keeps them), or the
     error message of an object that cannot be decomposed."""
-    from f2f_jax.geometry.pieces import object_pieces
-
     try:
         return object_pieces(obj, geometry, cache_dir=False)
     except (F2FError, ValueError) as exc:
@@ -112,7 +112,7 @@ def trials_task(cfg: Config, candidates: list, *pieces) -> list[TrialResult]:
     """The 11 trials of each candidate (slot, left, right, object_xy or None) in turn; slot
     indexes ``pieces``, the task's objects (Hulls, or a hull error message).  A candidate that
     raises is a failed candidate, not a failed task."""
-    from f2f_jax.sim.mujoco_cpu import simulate_candidate
+    from f2f_jax.sim.mujoco_cpu import simulate_candidate  # mujoco_cpu imports this module
 
     out = []
     for slot, left, right, xy in candidates:
@@ -139,8 +139,6 @@ def run(objs: Sequence[np.ndarray], lefts, rights, todo: np.ndarray, cfg: Config
     """TrialResults of the candidates ``todo`` (indices into objs/lefts/rights) simulated in Ray
     tasks.  hull_list: per candidate Hulls (or a hull error message) given by the caller, else
     None: pieces are made here by ``cfg.geometry.object_method``.  Returns {index: result}."""
-    from f2f_jax.geometry.pieces import cached_pieces, keep_pieces
-
     if task_size is not None and int(task_size) < 1:
         raise ValueError(f"task_size must be >= 1, got {task_size}")
     ray = connect(address)
@@ -154,28 +152,7 @@ def run(objs: Sequence[np.ndarray], lefts, rights, todo: np.ndarray, cfg: Config
     pieces_remote, trials_remote = _remote(ray, pieces_task), _remote(ray, trials_task)
     cfg_ref = ray.put(cfg)
 
-    # one object-store entry per distinct object: given, cached, or made by a task
-    refs: dict = {}  # key -> ObjectRef of Hulls | str
-    key_of: dict[int, object] = {}
-    making: dict = {}  # ObjectRef of a pieces task -> (key, candidate index of the volume)
-    for i in todo:
-        if hull_list is not None:
-            key = id(hull_list[i])
-            if key not in refs:
-                refs[key] = ray.put(hull_list[i])
-        else:
-            key = hashlib.sha1(np.ascontiguousarray(objs[i], np.float32).tobytes()).hexdigest()
-            if key not in refs:
-                try:
-                    hit = cached_pieces(objs[i], g, cache_dir=cache_dir)
-                except (F2FError, ValueError) as exc:
-                    hit = f"{type(exc).__name__}: {exc}"
-                if hit is not None:
-                    refs[key] = ray.put(hit)
-                else:
-                    refs[key] = pieces_remote.remote(objs[i], g)
-                    making[refs[key]] = (key, i)
-        key_of[i] = key
+    refs, key_of, making = _object_refs(ray, pieces_remote, objs, todo, hull_list, g, cache_dir)
 
     def submit(chunk: list[int]):
         keys = list(dict.fromkeys(key_of[i] for i in chunk))
@@ -190,8 +167,6 @@ def run(objs: Sequence[np.ndarray], lefts, rights, todo: np.ndarray, cfg: Config
     limit = TASKS_PER_CPU * cpus
     bar = None
     if progress:
-        from tqdm.auto import tqdm
-
         bar = tqdm(total=len(todo), desc=f"grasp trials (ray, {cpus} CPUs)", unit="cand")
     try:
         while queue or pending:
@@ -236,6 +211,33 @@ def run(objs: Sequence[np.ndarray], lefts, rights, todo: np.ndarray, cfg: Config
             bar.close()
     return results
 
+
+def _object_refs(ray, pieces_remote, objs, todo: list[int], hull_list, g, cache_dir):
+    """One object-store entry per distinct object: the caller's pieces, cached ones, or a pieces
+    task.  Returns (refs: key -> ObjectRef of Hulls | error string, key_of: candidate -> key,
+    making: ObjectRef of a pieces task -> (key, a candidate index of that object))."""
+    refs: dict = {}
+    key_of: dict[int, object] = {}
+    making: dict = {}
+    for i in todo:
+        if hull_list is not None:
+            key = id(hull_list[i])
+            if key not in refs:
+                refs[key] = ray.put(hull_list[i])
+        else:
+            key = hashlib.sha1(np.ascontiguousarray(objs[i], np.float32).tobytes()).hexdigest()
+            if key not in refs:
+                try:
+                    hit = cached_pieces(objs[i], g, cache_dir=cache_dir)
+                except (F2FError, ValueError) as exc:
+                    hit = f"{type(exc).__name__}: {exc}"
+                if hit is not None:
+                    refs[key] = ray.put(hit)
+                else:
+                    refs[key] = pieces_remote.remote(objs[i], g)
+                    making[refs[key]] = (key, i)
+        key_of[i] = key
+    return refs, key_of, making
 
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()

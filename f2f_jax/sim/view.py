@@ -25,8 +25,8 @@ from scipy.spatial import ConvexHull  # noqa: E402
 
 from f2f_jax import config as config_mod  # noqa: E402
 from f2f_jax.config import TRIAL_NAMES, Config  # noqa: E402
-from f2f_jax.sim.protocol import GraspRunner, run_trials  # noqa: E402
 from f2f_jax.fileio import atomic_path  # noqa: E402
+from f2f_jax.sim.protocol import GraspRunner, run_trials  # noqa: E402
 
 
 @dataclasses.dataclass
