@@ -10,6 +10,7 @@ pytest.importorskip("pybullet")
 fidelity = importlib.import_module("benchmarks.protocol_fidelity")
 
 
+@pytest.mark.slow
 def test_fidelity_report_on_one_object(tmp_path, capsys, monkeypatch):
     out, png = tmp_path / "fidelity.json", tmp_path / "both.png"
     # one ablation a side: a friction that lets our flat pads lift the bottle, and the original's

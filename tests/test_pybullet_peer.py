@@ -122,6 +122,7 @@ def test_self_collision_switch_stops_fingers_that_meet_outside_the_object(cfg):
     assert min(closed[False]) > max(closed[True]) + 0.1, closed
 
 
+@pytest.mark.slow
 def test_a_recorded_run_draws_the_same_outcome_as_a_plain_one(cfg, sphere_object, sphere_imprint,
                                                              tmp_path):
     """render_original records the panels of f2f_jax.sim.view without changing the physics:

@@ -85,6 +85,7 @@ def test_missing_extra_names_the_install_command(triples, tiny_cfg, monkeypatch)
                          task_size=0)
 
 
+@pytest.mark.slow
 def test_ray_gives_the_threaded_outcomes(ray_cluster, triples, threaded, tiny_cfg, tmp_path):
     want, want_info = threaded
     # uneven tasks (4 + 4 + 1 candidates), object pieces made by Ray tasks into a fresh cache
@@ -114,6 +115,7 @@ def _busy_workers() -> list[int]:
     return pids
 
 
+@pytest.mark.slow
 def test_killed_worker_is_retried_and_outcomes_complete(ray_cluster, triples, threaded, tiny_cfg,
                                                        tmp_path):
     result = {}
@@ -147,6 +149,7 @@ class _KillsItsWorker:
         return os._exit, (3,)
 
 
+@pytest.mark.slow
 def test_candidate_that_crashes_workers_fails_alone(ray_cluster, triples, threaded, tiny_cfg,
                                                     monkeypatch):
     monkeypatch.setattr(ray_executor, "TASK_RETRIES", 1)
@@ -161,6 +164,7 @@ def test_candidate_that_crashes_workers_fails_alone(ray_cluster, triples, thread
     assert not out[1].any()
 
 
+@pytest.mark.slow
 def test_killed_make_dataset_driver_loses_and_duplicates_nothing(ray_cluster, tmp_path):
     meshes = tmp_path / "meshes"
     meshes.mkdir()
@@ -194,6 +198,7 @@ def test_killed_make_dataset_driver_loses_and_duplicates_nothing(ray_cluster, tm
         (n, k) for n in want for k in ("imprint", "wsg50"))
 
 
+@pytest.mark.slow
 def test_paper_table_on_ray_is_the_threaded_one(ray_cluster, triples, threaded, tiny_cfg):
     from f2f_jax import tables as E
 

@@ -99,6 +99,7 @@ def test_generator_steps_train_only_the_embedding(cfg, volumes, trained_fn):
     assert all(changed)
 
 
+@pytest.mark.slow
 def test_steps_run_data_parallel_on_two_devices():
     """Two host devices (XLA flag): the batch is split over them and every stage still runs."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
