@@ -252,15 +252,33 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
     spec.geom("floor").friction = [s.object_friction, 0.005, 0.0001]
     spec.geom("floor").condim = s.condim
 
-    # --- object: a free body whose frame is the object volume's frame -------------------------
+    _add_object(spec, object_hulls, cfg, mass=mass, yaw=object_yaw, xy=object_xy,
+                pad_collides=pad_collides)
+    for side, hulls in zip(SIDES, (left_hulls, right_hulls)):
+        _add_finger(spec, side, hulls, cfg, friction=mu, flat_tips=flat_tips,
+                    pad_collides=pad_collides)
+    if max_geom_pairs is not None:
+        spec.add_numeric(name="max_geom_pairs", data=[float(max_geom_pairs)])
+    if max_contact_points is not None:
+        spec.add_numeric(name="max_contact_points", data=[float(max_contact_points)])
+    try:
+        return spec.compile()
+    except ValueError as exc:
+        raise ValueError(f"MuJoCo could not compile the grasp scene: {exc}") from None
+
+
+def _add_object(spec: mujoco.MjSpec, object_hulls: Hulls, cfg: Config, *, mass: float, yaw: float,
+                xy, pad_collides: bool) -> None:
+    """The object: a free body whose frame is the object volume's frame, its lowest point on the
+    floor, inertia from its pieces at uniform density."""
+    s = cfg.sim
     slots = _slot_pieces(object_hulls, "object hulls")
     pieces = [p for p in slots if p is not None]
     volumes = [_hull_volume(p, f"object hulls piece {k}") for k, p in enumerate(slots)
                if p is not None]
     density = mass / sum(volumes)  # overlapping pieces count twice; coacd's overlap is small
     z_min = min(float(p[:, 2].min()) for p in pieces)
-    body = spec.worldbody.add_body(name="object", pos=[object_xy[0], object_xy[1], -z_min],
-                                   quat=_yaw_quat(object_yaw))
+    body = spec.worldbody.add_body(name="object", pos=[xy[0], xy[1], -z_min], quat=_yaw_quat(yaw))
     body.add_freejoint(name="object")
     pad = _PAD_TETRA + pieces[int(np.argmax(volumes))].mean(0)  # inside the largest piece
     for k, piece in enumerate(slots):
@@ -271,46 +289,39 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
                    friction=[s.object_friction, 0.005, 0.0001], group=2,
                    rgba=[0.85, 0.45, 0.2, 1.0] if real else [0, 0, 0, 0])
 
-    # --- fingers: pieces on the jaws, rotated from (u, v, w) into the jaw frame --------------
-    finger_geom = dict(condim=s.condim, priority=1, friction=[mu, 0.005, 0.0001], group=2)
+
+def _add_finger(spec: mujoco.MjSpec, side: str, hulls: Hulls | None, cfg: Config, *, friction: float,
+                flat_tips: bool, pad_collides: bool) -> None:
+    """One finger's pieces on its jaw, rotated from (u, v, w) into the jaw frame."""
+    s = cfg.sim
+    finger_geom = dict(condim=s.condim, priority=1, friction=[friction, 0.005, 0.0001], group=2)
     # with SimConfig.finger_collisions the fingers also meet the other jaw's fingers (pieces on
     # one jaw share a body, which MuJoCo never collides with itself).  Not the floor: the
     # fingers' cube reaches a voxel below it (GeometryConfig.rest_offset, as the object's volume
     # does), and a floor pressing on that layer would drag the closing jaws.
     finger_affinity = FINGER_BIT if s.finger_collisions else 0
-    for side, hulls in zip(SIDES, (left_hulls, right_hulls)):
-        pose = finger_pose(side, 0.0, cfg)
-        rot = pose[:3, :3]
-        jaw = spec.body(f"{side}_jaw")
-        jaw.pos = pose[:3, 3]  # the mount plane's centre at the finger cube's mid-height
-        slots = ([None] * cfg.geometry.finger_hulls if hulls is None
-                 else _slot_pieces(hulls, f"{side} finger hulls"))
-        pad = _PAD_TETRA + np.array([0.0, 0.0, _FINGER_PAD_W])
-        for k, piece in enumerate(slots):
-            real = piece is not None
-            if real:
-                _hull_volume(piece, f"{side} finger hulls piece {k}")
-            bits = FINGER_BIT if (real or pad_collides) else 0
-            _add_piece(spec, jaw, f"{side}_{k}", (piece if real else pad) @ rot.T, contype=bits,
-                       conaffinity=finger_affinity if bits else 0,
-                       rgba=[0.25, 0.45, 0.8, 1.0] if real else [0, 0, 0, 0], **finger_geom)
-        if flat_tips:
-            tip = spec.geom(f"{side}_tip")
-            tip.contype = FINGER_BIT
-            tip.conaffinity = finger_affinity
-            tip.friction = [mu, 0.005, 0.0001]
-            tip.condim = s.condim
-            tip.group = 2
-
-    if max_geom_pairs is not None:
-        spec.add_numeric(name="max_geom_pairs", data=[float(max_geom_pairs)])
-    if max_contact_points is not None:
-        spec.add_numeric(name="max_contact_points", data=[float(max_contact_points)])
-    try:
-        return spec.compile()
-    except ValueError as exc:
-        raise ValueError(f"MuJoCo could not compile the grasp scene: {exc}") from None
-
+    pose = finger_pose(side, 0.0, cfg)
+    rot = pose[:3, :3]
+    jaw = spec.body(f"{side}_jaw")
+    jaw.pos = pose[:3, 3]  # the mount plane's centre at the finger cube's mid-height
+    slots = ([None] * cfg.geometry.finger_hulls if hulls is None
+             else _slot_pieces(hulls, f"{side} finger hulls"))
+    pad = _PAD_TETRA + np.array([0.0, 0.0, _FINGER_PAD_W])
+    for k, piece in enumerate(slots):
+        real = piece is not None
+        if real:
+            _hull_volume(piece, f"{side} finger hulls piece {k}")
+        bits = FINGER_BIT if (real or pad_collides) else 0
+        _add_piece(spec, jaw, f"{side}_{k}", (piece if real else pad) @ rot.T, contype=bits,
+                   conaffinity=finger_affinity if bits else 0,
+                   rgba=[0.25, 0.45, 0.8, 1.0] if real else [0, 0, 0, 0], **finger_geom)
+    if flat_tips:
+        tip = spec.geom(f"{side}_tip")
+        tip.contype = FINGER_BIT
+        tip.conaffinity = finger_affinity
+        tip.friction = [friction, 0.005, 0.0001]
+        tip.condim = s.condim
+        tip.group = 2
 
 def object_quat(yaw: float) -> np.ndarray:
     """[4] (w, x, y, z) orientation of the object turned by ``yaw`` rad about world z."""
