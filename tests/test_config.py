@@ -1,0 +1,59 @@
+"""Config from the command line: ``config.override`` (``--set SECTION.FIELD=VALUE``)."""
+
+import json
+
+import pytest
+
+from f2f_jax import config
+from f2f_jax.errors import CheckpointError
+from f2f_jax.train.cotrain import CoTrainRun
+from f2f_jax.train.run_dir import write_record
+
+
+def test_override_reads_each_field_as_its_type():
+    cfg = config.override(config.default(), [
+        "train.generator_lr=3e-4", "sim.timestep=0.002", "net.fitness_fc=(256, 128)",
+        "sim.finger_collisions=false", "train.objectives=GS", "train.cycles=7",
+        "sim.stability_directions=[[1, 0, 0], [0, 1, 0]]"])
+    assert cfg.train.generator_lr == pytest.approx(3e-4) and cfg.sim.timestep == 0.002
+    assert cfg.net.fitness_fc == (256, 128) and cfg.sim.finger_collisions is False
+    assert cfg.train.objectives == "GS" and cfg.train.cycles == 7 and isinstance(cfg.train.cycles, int)
+    assert cfg.sim.stability_directions == ((1, 0, 0), (0, 1, 0))
+    assert config.override(cfg, ["train.generator_lr=None"]).train.generator_lr is None
+    assert cfg.geometry == config.default().geometry  # nothing else moved
+    assert config.override(cfg, []) == cfg
+
+
+@pytest.mark.parametrize("bad, words", [
+    ("train.lr", "SECTION.FIELD=VALUE"),
+    ("optim.lr=1", "no config section 'optim'"),
+    ("train.learning_rate=1", "train has no field 'learning_rate'"),
+    ("train.cycles=1.5", "train.cycles takes an int"),
+    ("train.cycles=None", "not None"),
+    ("sim.timestep=fast", "sim.timestep takes a float"),
+    ("sim.finger_collisions=2", "true or false"),
+    ("net.fitness_fc=3", "takes a tuple"),
+])
+def test_override_refuses_what_the_field_cannot_hold(bad, words):
+    with pytest.raises(ValueError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        config.override(config.default(), [bad])
+
+
+def test_a_run_directory_keeps_its_overrides(tmp_path):
+    """A run made with --set records the changed field; resuming without it is refused, naming it."""
+    cfg = config.override(config.tiny(), ["train.generator_lr=3e-4"])
+    run = CoTrainRun(tmp_path, cfg, config_name="tiny", progress=False)
+    write_record(tmp_path, run._run_meta())
+    assert json.loads((tmp_path / "run.json").read_text())["config"]["train"]["generator_lr"] == 3e-4
+    CoTrainRun(tmp_path, cfg, config_name="tiny", progress=False)  # the same settings: accepted
+    with pytest.raises(CheckpointError, match="train.generator_lr"):
+        CoTrainRun(tmp_path, config.tiny(), config_name="tiny", progress=False)
+
+
+def test_cotrain_refuses_a_bad_set_before_any_work(tmp_path, capsys):
+    from f2f_jax.cli import cotrain
+
+    run_dir = tmp_path / "run"
+    assert cotrain.main(["--config", "tiny", "--run-dir", str(run_dir), "--set", "train.nope=1"]) == 2
+    assert "train has no field 'nope'" in capsys.readouterr().err
+    assert not run_dir.exists()
