@@ -158,11 +158,7 @@ def test_missing_checkpoint_names_the_command(tmp_path):
 
 
 def test_bad_command_lines_fail_cleanly(uninterrupted, tmp_path, capsys):
-    sys.path.insert(0, str(ROOT / "experiments"))
-    try:
-        import cotrain as cli
-    finally:
-        sys.path.pop(0)
+    from f2f_jax.cli import cotrain as cli
     assert cli.main(["--cycles", "0", "--run-dir", str(tmp_path / "a")]) == 2
     assert "--cycles" in capsys.readouterr().err
     assert cli.main(["--objects", str(tmp_path / "missing"), "--run-dir", str(tmp_path / "b")]) == 2
@@ -200,11 +196,7 @@ def test_config_round_trips_through_checkpoint_json(name):
 def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, capsys):
     """--from-pretrained: the cycles of a GS run with the imprint anchor start from the whole run's
     pretrained models and data, without the whole run's designs; other settings are refused."""
-    sys.path.insert(0, str(ROOT / "experiments"))
-    try:
-        import cotrain as cli
-    finally:
-        sys.path.pop(0)
+    from f2f_jax.cli import cotrain as cli
     src, _ = uninterrupted
     run_dir = tmp_path / "gs"
     args = ["--config", "tiny", "--quiet", "--cycles", "2", "--objectives", "GS", "--imprint-anchor", "1",
@@ -238,7 +230,7 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
 def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted, tmp_path, capsys):
     """experiments/evaluate.py --neighbourhood: both generators' candidates simulated on the run's
     held-out objects plus new built-in ones, and the paired gain is the difference of the two."""
-    from experiments import evaluate as cli  # as tests/test_evaluate.py imports it
+    from f2f_jax.cli import evaluate as cli
 
     run_dir, _ = uninterrupted
     out = tmp_path / "eval"

@@ -16,7 +16,7 @@ import trimesh
 import f2f_jax
 from f2f_jax import config
 from f2f_jax import designer as design_module
-from f2f_jax.cli import design_main
+from f2f_jax.cli.design import main as design_main
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import (
@@ -239,7 +239,7 @@ def sphere_stl(tmp_path, sphere_mesh):
 def test_cli_writes_four_files(models, sphere_stl, tmp_path, monkeypatch, capsys):
     """The one simulating test: --verify (the default) on two constructed candidates."""
     monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.setattr("f2f_jax.cli._load_models", lambda run_dir: models)
+    monkeypatch.setattr("f2f_jax.cli.design._load_models", lambda run_dir: models)
 
     def propose(m, objects, key, candidates, noise=0.0):
         # candidate 0: the imprint pair of the object (holds a sphere); 1: flat fingertips
@@ -338,7 +338,7 @@ def test_cli_bad_inputs_write_nothing(sphere_stl, tmp_path, capsys):
 
 def test_cli_process_exit_code_no_traceback(tmp_path):
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "f2f_jax.cli", str(tmp_path / "nope.obj"),
+    proc = subprocess.run([sys.executable, "-m", "f2f_jax.cli.design", str(tmp_path / "nope.obj"),
                            "--out", str(out)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and "mesh file not found" in proc.stderr

@@ -200,7 +200,7 @@ def test_network_designers_post_process_like_training(objects, tiny):
 
 
 def test_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys):
-    from experiments import evaluate as cli
+    from f2f_jax.cli import evaluate as cli
 
     assert cli.main(["--tables", "3"]) == 2
     assert cli.main(["--extra", "no-equals-sign"]) == 2

@@ -5,9 +5,7 @@ import importlib.util
 import json
 import logging
 import re
-import sys
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -282,11 +280,7 @@ def test_object_set_keeps_its_test_fraction(tmp_path):
 
 # --- the CLI --------------------------------------------------------------------------------------
 def test_make_objects_cli(tmp_path, capsys):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-    try:
-        import make_objects
-    finally:
-        sys.path.pop(0)
+    from f2f_jax.cli import make_objects
     out = tmp_path / "objs"
     assert make_objects.main(["--source", "builtin", "--n", "3", "--out", str(out), "--preview", "2"]) == 0
     report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])

@@ -211,13 +211,7 @@ def test_paper_table_on_ray_is_the_threaded_one(ray_cluster, triples, threaded, 
 
 
 def test_command_lines_refuse_ray_misuse_before_any_work(tmp_path, capsys, monkeypatch):
-    sys.path.insert(0, str(ROOT / "experiments"))
-    try:
-        import cotrain
-        from experiments import evaluate
-        import make_dataset
-    finally:
-        sys.path.pop(0)
+    from f2f_jax.cli import cotrain, evaluate, make_dataset
     run = ["--run-dir", str(tmp_path / "run")]
     assert cotrain.main([*run, "--executor", "ray", "--backend", "mjx"]) == 2
     assert evaluate.main(["--executor", "ray", "--backend", "mjx"]) == 2

@@ -22,6 +22,12 @@ import os
 import sys
 from pathlib import Path
 
+from f2f_jax import config  # no JAX here: the XLA flags set in main still take effect
+from f2f_jax.config import TRIAL_NAMES
+from f2f_jax.data.sources import mesh_files
+from f2f_jax.errors import F2FError
+from f2f_jax.sim import ray_executor
+
 
 def _deterministic_xla() -> None:
     """A resumed run must end where an uninterrupted one ends: ask XLA for deterministic GPU
@@ -32,14 +38,12 @@ def _deterministic_xla() -> None:
 
 
 def _default_backend() -> str:
-    import jax
+    import jax  # after the XLA flags
 
     return "mjx" if jax.default_backend() in ("gpu", "tpu") else "mujoco"
 
 
 def _table(summary: dict) -> str:
-    from f2f_jax.config import TRIAL_NAMES
-
     lines = ["| designer (held-out objects: %d) | grasp | S avg | R avg |" % summary["held_out_objects"],
              "|---|---|---|---|"]
     for name, s in summary["success"].items():
@@ -52,7 +56,7 @@ def _table(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cycles", type=int, default=None, help="co-training cycles (default: the config's)")
     p.add_argument("--config", default="default", help="tiny | default (CPU) | paper (GPU sizes)")
@@ -60,7 +64,7 @@ def main(argv=None) -> int:
                    help="builtin (procedural, no download) | pybullet | a directory of meshes")
     p.add_argument("--n-objects", type=int, default=None, help="built-in objects to make (default: config)")
     p.add_argument("--run-dir", default="runs/cotrain")
-    p.add_argument("--backend", choices=["mujoco", "mjx", "warp"], default=None,
+    p.add_argument("--backend", choices=list(config.BACKENDS), default=None,
                    help="simulator (default: mjx on an accelerator, mujoco on a CPU)")
     p.add_argument("--objectives", choices=["GS", "GS+R", "GS+S", "full"], default=None,
                    help="fitness outputs the generator maximises (Table 1 ablations)")
@@ -74,32 +78,28 @@ def main(argv=None) -> int:
                    help="simulation preset (config.SIM_PRESETS): fast (default) or reference (coacd "
                         "objects, every phase at full length)")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="any config field, after the flags above (repeatable), e.g. "
+                        "--set train.generator_lr=3e-4 --set sim.timestep=0.002; recorded in the "
+                        "run directory's run.json, which a resumed run must match")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    from f2f_jax.sim import ray_executor  # no JAX: the XLA flags below still take effect
-
     ray_executor.add_cli_arguments(p)
-    args = p.parse_args(argv)
-    _deterministic_xla()
+    return p
 
-    from f2f_jax import config
-    from f2f_jax.errors import F2FError
 
-    def fail(msg: str) -> int:
-        print(f"cotrain: error: {msg}", file=sys.stderr)
-        return 2
-
+def _run_config(args):
+    """The run's Config from the flags (--config, then the train flags, then every --set), and the
+    object source resolved; raises ValueError with the message for a bad flag."""
     if args.config not in config.CONFIGS:
-        return fail(f"unknown --config {args.config!r}; choose one of {', '.join(config.CONFIGS)}")
+        raise ValueError(f"unknown --config {args.config!r}; choose one of {', '.join(config.CONFIGS)}")
     if args.cycles is not None and args.cycles < 1:
-        return fail(f"--cycles must be at least 1, got {args.cycles}")
+        raise ValueError(f"--cycles must be at least 1, got {args.cycles}")
     if args.objects not in ("builtin", "pybullet"):
         d = Path(args.objects).expanduser()
         if not d.is_dir():
-            return fail(f"--objects {args.objects}: no such directory")
-        from f2f_jax.data.sources import mesh_files
-
+            raise ValueError(f"--objects {args.objects}: no such directory")
         if not mesh_files(d):
-            return fail(f"--objects {args.objects}: no mesh files (.obj/.stl/.ply/.off/.glb) in it")
+            raise ValueError(f"--objects {args.objects}: no mesh files (.obj/.stl/.ply/.off/.glb) in it")
         args.objects = str(d.resolve())
     cfg = config.get(args.config)
     if args.sim_preset is not None:
@@ -107,26 +107,41 @@ def main(argv=None) -> int:
     changes = {}
     if args.n_objects is not None:
         if args.objects != "builtin":
-            return fail("--n-objects applies to the built-in objects only (a directory is used whole)")
+            raise ValueError("--n-objects applies to the built-in objects only (a directory is used whole)")
         if args.n_objects < 4:
-            return fail("--n-objects must be at least 4")
+            raise ValueError("--n-objects must be at least 4")
         changes["n_objects"] = args.n_objects
     if args.objectives is not None:
         changes["objectives"] = args.objectives
     if args.imprint_anchor is not None:
         if not args.imprint_anchor >= 0:
-            return fail(f"--imprint-anchor must be >= 0, got {args.imprint_anchor}")
+            raise ValueError(f"--imprint-anchor must be >= 0, got {args.imprint_anchor}")
         changes["imprint_anchor"] = args.imprint_anchor
     if args.seed is not None:
         if args.seed < 0:
-            return fail(f"--seed must be >= 0, got {args.seed}")
+            raise ValueError(f"--seed must be >= 0, got {args.seed}")
         changes["seed"] = args.seed
     if args.cycles is not None:
         changes["cycles"] = args.cycles
     if changes:
         cfg = cfg.replace(train=dataclasses.replace(cfg.train, **changes))
+    return config.override(cfg, args.set)
 
-    from f2f_jax.train.cotrain import CoTrainRun
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    _deterministic_xla()
+
+    def fail(msg: str) -> int:
+        print(f"cotrain: error: {msg}", file=sys.stderr)
+        return 2
+
+    try:
+        cfg = _run_config(args)
+    except ValueError as exc:
+        return fail(str(exc))
+
+    from f2f_jax.train.cotrain import CoTrainRun  # JAX: imported after the XLA flags are set
 
     if args.executor == "ray" and args.backend not in (None, "mujoco"):
         return fail(f"--executor ray distributes the mujoco backend; drop --backend {args.backend}")
@@ -136,7 +151,8 @@ def main(argv=None) -> int:
         # an existing run goes on with its own simulator unless --sim-preset says otherwise
         run = CoTrainRun(args.run_dir, cfg, config_name=args.config, objects=args.objects,
                          backend=backend, progress=not args.quiet, executor=executor,
-                         keep_simulator=args.sim_preset is None)
+                         keep_simulator=args.sim_preset is None and not any(
+                             a.startswith(("sim.", "geometry.")) for a in args.set))
         if args.from_pretrained:
             src = str(Path(args.from_pretrained).resolve())
             meta = Path(args.run_dir) / "run.json"

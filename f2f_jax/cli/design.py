@@ -1,4 +1,4 @@
-"""Command-line tools.
+"""The ``f2f-design`` command.
 
 ``f2f-design MESH --out DIR``: design a finger pair for one mesh with a trained run and write
 
@@ -23,6 +23,8 @@ import uuid
 import warnings
 from pathlib import Path
 
+from f2f_jax.config import BACKENDS  # numpy only: --help stays quick
+
 EXIT_ERROR = 2
 
 
@@ -45,7 +47,7 @@ def _design_parser() -> argparse.ArgumentParser:
                    help="also rank the object's imprint pair and two variants of it, so a verified "
                         "pick never passes fewer trials than imprints (default: with --verify)")
     p.add_argument("--seed", type=int, default=0, help="seed of the candidates' latent noise")
-    p.add_argument("--backend", choices=("mujoco", "mjx", "warp"), default="mujoco",
+    p.add_argument("--backend", choices=list(BACKENDS), default="mujoco",
                    help="simulator for --verify (default mujoco, on CPU threads)")
     # as sim.ray_executor.add_cli_arguments, which would import the simulator before the checks
     p.add_argument("--executor", default="threads", choices=["threads", "ray"],
@@ -68,7 +70,7 @@ def _fail(message: str) -> int:
     return EXIT_ERROR
 
 
-def design_main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     """Entry point of ``f2f-design``; returns the exit status (0 ok, 2 error)."""
     parser = _design_parser()
     try:
@@ -96,7 +98,7 @@ def design_main(argv: list[str] | None = None) -> int:
 
 
 def _run_design(args) -> int:
-    # Heavy imports (JAX, MuJoCo, trimesh) only after the cheap checks of design_main: a typo in a
+    # Heavy imports (JAX, MuJoCo, trimesh) only after the cheap checks of main: a typo in a
     # path fails in a blink, and ``f2f-design --help`` answers at once.
     from f2f_jax.data.sources import load_mesh
     from f2f_jax.sim.ray_executor import executor_from_cli
@@ -164,4 +166,4 @@ def _replace_dir(tmp: Path, out: Path) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(design_main())
+    sys.exit(main())

@@ -33,6 +33,20 @@ import sys
 import time
 from pathlib import Path
 
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from f2f_jax import config
+from f2f_jax import tables as E
+from f2f_jax.data import builtin_objects, held_out_objects
+from f2f_jax.designer import design
+from f2f_jax.errors import F2FError
+from f2f_jax.fileio import atomic_path
+from f2f_jax.geometry import mesh_to_tsdf
+from f2f_jax.sim import ray_executor
+from f2f_jax.train.checkpoint import config_from_dict, load_models
+
 
 def _fail(msg: str) -> int:
     print(f"evaluate: error: {msg}", file=sys.stderr)
@@ -48,18 +62,10 @@ def _run_config(run_dir: Path):
     path = run_dir / "run.json"
     if not path.exists():
         return None
-    from f2f_jax.train.checkpoint import config_from_dict
-
     return config_from_dict(json.loads(path.read_text())["config"])
 
 
 def _builtin_objects(n: int, seed: int, cfg):
-    import numpy as np
-    from tqdm.auto import tqdm
-
-    from f2f_jax.data import builtin_objects
-    from f2f_jax.geometry import mesh_to_tsdf
-
     meshes = builtin_objects(n, seed=seed)
     tsdfs = [mesh_to_tsdf(m, cfg.geometry) for m in tqdm(meshes, desc="objects -> TSDF", unit="obj")]
     return np.stack(tsdfs), [m.metadata.get("name", f"object{i}") for i, m in enumerate(meshes)]
@@ -68,18 +74,12 @@ def _builtin_objects(n: int, seed: int, cfg):
 def _load_models(run_dir: Path):
     """(Models, None) or (None, why not)."""
     try:
-        from f2f_jax.train.checkpoint import load_models
-    except ImportError as exc:
-        return None, f"no checkpoint loader ({exc})"
-    from f2f_jax.errors import F2FError
-
-    try:
         return load_models(run_dir), None
     except (F2FError, FileNotFoundError) as exc:
         return None, str(exc)
 
 
-def main(argv=None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run-dir", default=None, help="a co-training run directory (objects + checkpoints)")
     p.add_argument("--extra", action="append", default=[], metavar="NAME=RUN_DIR",
@@ -104,8 +104,8 @@ def main(argv=None) -> int:
     p.add_argument("--fresh", type=int, default=None, metavar="N",
                    help="with --run-dir: add N new built-in objects (drawn with --seed, which must "
                         "differ from the run's) to its held-out ones")
-    p.add_argument("--backend", choices=["mujoco", "mjx", "warp"], default="mujoco")
-    p.add_argument("--sim-preset", default=None, choices=["fast", "reference"],
+    p.add_argument("--backend", choices=list(config.BACKENDS), default="mujoco")
+    p.add_argument("--sim-preset", default=None, choices=sorted(config.SIM_PRESETS),
                    help="simulation preset (config.SIM_PRESETS; default: the run's config's)")
     p.add_argument("--randemb-steps", type=int, default=200,
                    help="RandEmb+FN optimisation steps (paper: 200)")
@@ -113,53 +113,230 @@ def main(argv=None) -> int:
     p.add_argument("--no-randemb", action="store_true", help="skip the RandEmb+FN row (slow on a CPU)")
     p.add_argument("--seed", type=int, default=0, help="built-in objects, RandEmb keys, position shifts")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    from f2f_jax.sim import ray_executor
-
     ray_executor.add_cli_arguments(p)
-    args = p.parse_args(argv)
+    return p
 
-    from f2f_jax import config
-    from f2f_jax.errors import F2FError
 
+def _check(args) -> tuple[str | None, list[int], list[tuple[str, Path]]]:
+    """(error or None, the tables asked for, the --extra rows as (name, run dir))."""
     try:
         tables = sorted({int(t) for t in args.tables.split(",") if t.strip()})
     except ValueError:
-        return _fail(f"--tables {args.tables!r}: a comma-separated list of 1 and 2")
-    if not tables or not set(tables) <= {1, 2}:
-        return _fail(f"--tables {args.tables!r}: choose 1, 2 or 1,2")
-    if args.config is not None and args.config not in config.CONFIGS:
-        return _fail(f"unknown --config {args.config!r}; choose one of {', '.join(config.CONFIGS)}")
-    if args.objects is not None and args.objects < 1:
-        return _fail("--objects must be at least 1")
-    if args.randemb_steps < 0 or args.randemb_samples < 1:
-        return _fail("--randemb-steps must be >= 0 and --randemb-samples >= 1")
-    if args.design_search is not None and args.design_search < 1:
-        return _fail("--design-search K needs K >= 1")
-    if args.fitness_ranking is not None and args.fitness_ranking < 2:
-        return _fail("--fitness-ranking K needs K >= 2 candidates to rank")
-    if args.neighbourhood is not None and args.neighbourhood < 1:
-        return _fail("--neighbourhood K needs K >= 1")
-    if args.fresh is not None and (args.fresh < 1 or not args.run_dir):
-        return _fail("--fresh N needs N >= 1 and --run-dir")
+        return f"--tables {args.tables!r}: a comma-separated list of 1 and 2", [], []
+    checks = [
+        (not tables or not set(tables) <= {1, 2}, f"--tables {args.tables!r}: choose 1, 2 or 1,2"),
+        (args.config is not None and args.config not in config.CONFIGS,
+         f"unknown --config {args.config!r}; choose one of {', '.join(config.CONFIGS)}"),
+        (args.objects is not None and args.objects < 1, "--objects must be at least 1"),
+        (args.randemb_steps < 0 or args.randemb_samples < 1,
+         "--randemb-steps must be >= 0 and --randemb-samples >= 1"),
+        (args.design_search is not None and args.design_search < 1, "--design-search K needs K >= 1"),
+        (args.fitness_ranking is not None and args.fitness_ranking < 2,
+         "--fitness-ranking K needs K >= 2 candidates to rank"),
+        (args.neighbourhood is not None and args.neighbourhood < 1, "--neighbourhood K needs K >= 1"),
+        (args.fresh is not None and (args.fresh < 1 or not args.run_dir),
+         "--fresh N needs N >= 1 and --run-dir"),
+    ]
+    for bad, message in checks:
+        if bad:
+            return message, [], []
     extras = []
     for item in args.extra:
         name, sep, path = item.partition("=")
         if not sep or not name.strip() or not path.strip():
-            return _fail(f"--extra {item!r}: expected NAME=RUN_DIR")
+            return f"--extra {item!r}: expected NAME=RUN_DIR", [], []
         if not Path(path).expanduser().is_dir():
-            return _fail(f"--extra {item!r}: no such directory {path}")
+            return f"--extra {item!r}: no such directory {path}", [], []
         extras.append((name.strip(), Path(path).expanduser()))
     if args.executor == "ray" and args.backend != "mujoco":
-        return _fail(f"--executor ray distributes the mujoco backend; drop --backend {args.backend}")
+        return f"--executor ray distributes the mujoco backend; drop --backend {args.backend}", [], []
+    return None, tables, extras
+
+
+def _objects(args, run_dir: Path | None, cfg):
+    """(objects [N, R, R, R], names, what they are) or raises ValueError with the message."""
+    if run_dir is None:
+        objects, names = _builtin_objects(args.objects or 12, args.seed, cfg)
+        return objects, names, f"built-in objects (seed {args.seed})"
+    source = run_dir / "objects" / "source.json"
+    meta = json.loads(source.read_text()) if source.exists() else {}
+    if args.fresh and meta.get("source") == "builtin" and meta.get("seed") == args.seed:
+        raise ValueError(f"--fresh with --seed {args.seed}: the run made its built-in objects with "
+                         "that seed, so they would not be new; pick another --seed")
+    try:
+        objects, names = held_out_objects(run_dir, cfg.geometry)
+    except FileNotFoundError as exc:
+        raise ValueError(str(exc)) from None
+    what = f"held-out objects of {run_dir}"
+    if args.fresh:
+        new, new_names = _builtin_objects(args.fresh, args.seed, cfg)
+        objects = np.concatenate([objects[: args.objects], new])
+        names = list(names[: args.objects]) + [f"fresh/{n}" for n in new_names]
+        what += f" + {args.fresh} new built-in objects (seed {args.seed})"
+    elif args.objects is not None:
+        objects, names = objects[: args.objects], names[: args.objects]
+    return objects, names, what
+
+
+class _Rows:
+    """The designers of Table 1, the rows of Table 2, notes under the tables, and the models that
+    --fitness-ranking and --neighbourhood measure."""
+
+    def __init__(self):
+        self.designers, self.table2, self.notes = {}, [], []
+        self.pool_origins = []  # FingerPair.origin of the design pool's picks, one per object
+        self.ranked, self.generators = None, {}
+
+
+def _baseline_rows(rows: _Rows, cfg) -> None:
+    try:
+        rows.designers["WSG50"] = E.wsg_fmf_designer(cfg)
+        rows.table2.append("WSG50")
+        rows.notes.append("WSG50: Schunk's standard WSG-FMF fingers (the mesh pybullet_data ships; "
+                          "faces meet at the object's mid-plane at full closure, as every finger "
+                          "here); Flat pads: ideal flat fingertips (ours, not in the paper)")
+    except ImportError as exc:  # MissingExtraError: the mesh ships with pybullet
+        _say(f"WSG50 row (WSG-FMF fingers) skipped: {exc}")
+        rows.notes.append(f"WSG50 (WSG-FMF fingers) not run: {exc}")
+    rows.designers["Flat pads"] = E.wsg50_designer(cfg)
+    rows.designers["Imprint"] = E.imprint_designer(cfg)
+    rows.table2.append("Imprint")
+
+
+def _search_rows(rows: _Rows, models, args) -> None:
+    """--design-search K: f2f_jax.design on the generator's K candidates, then with the imprints."""
+    k = args.design_search
+    search = functools.partial(design, params=models, candidates=k, verify=True,
+                               backend=args.backend, executor=args.executor,
+                               progress=False if args.quiet else None)
+    name = f"Fit2Form + search ({k}, verify)"  # the generator's candidates only
+    rows.designers[name] = E.pair_designer(functools.partial(search, imprint=False), batched=True,
+                                           desc=name)
+    rows.table2.append(name)
+    pool_name = f"Design pool ({k} + imprints, verify)"  # design()'s default with verify
+
+    def pool(objs):
+        pairs = search(objs, imprint=True)
+        rows.pool_origins.extend(pair.origin for pair in pairs)
+        return pairs
+
+    rows.designers[pool_name] = E.pair_designer(pool, batched=True, desc=pool_name)
+    rows.table2.append(pool_name)
+
+
+def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
+    """The run's checkpoint (Fit2Form, RandEmb+FN, search rows) and every --extra's."""
+    models = None
+    if run_dir is not None:
+        models, why = _load_models(run_dir)
+        if models is None:
+            _say(f"no usable checkpoint in {run_dir} ({why}): running the baseline rows only")
+    if models is not None:
+        row = E.OBJECTIVE_ROWS.get(models.objectives, f"Fit2Form ({models.objectives})")
+        _say(f"{row}: {models.source}")
+        if not args.no_randemb:
+            rows.designers["RandEmb+FN"] = E.random_embedding_designer(
+                models, jax.random.key(args.seed), samples=args.randemb_samples,
+                steps=args.randemb_steps)
+        rows.designers[row] = E.models_designer(models)
+        rows.table2.append(row)
+        if args.design_search:
+            _search_rows(rows, models, args)
+        rows.ranked = models if args.fitness_ranking else None
+        if args.neighbourhood:
+            rows.generators[row] = models
+    for flag, value in (("--design-search", args.design_search),
+                        ("--fitness-ranking", args.fitness_ranking),
+                        ("--neighbourhood", args.neighbourhood)):
+        if value and models is None:
+            _say(f"{flag} needs --run-dir with a checkpoint: skipped")
+    for name, path in extras:
+        models_x, why = _load_models(path)
+        if models_x is None:
+            _say(f"--extra {name}: no usable checkpoint in {path} ({why}): row skipped")
+            continue
+        rows.designers[name] = E.models_designer(models_x)
+        if rows.generators:
+            rows.generators[name] = models_x
+
+
+def _table_results(args, designs, rows: _Rows, objs, hulls, cfg, notes, tables,
+                   out_dir) -> tuple[dict, list]:
+    """Tables 1 and 2 as asked: their results.json entries and markdown."""
+    results, printed, progress = {}, [], not args.quiet
+    kw = dict(backend=args.backend, progress=progress, object_hulls=hulls, executor=args.executor)
+    if 1 in tables:
+        t1 = E.table1(designs, objs, cfg, **kw)
+        t1.notes[:0] = notes + rows.notes
+        results["table1"] = {"values": t1.values, "feasible": t1.feasible,
+                             "sim_seconds": round(t1.sim_seconds, 2),
+                             "outcomes": {k: ["".join(map(str, o)) for o in v]
+                                          for k, v in t1.outcomes.items()},
+                             "files": {k: str(v) for k, v in t1.write(out_dir, "table1").items()}}
+        printed.append(t1.to_markdown())
+    if 2 in tables:
+        t2 = E.table2({k: designs[k] for k in rows.table2}, objs, cfg, seed=args.seed, **kw)
+        t2.notes[:0] = notes + rows.notes
+        results["table2"] = {"values": t2.values, "feasible": t2.feasible,
+                             "sim_seconds": round(t2.sim_seconds, 2),
+                             "grasp": {k: {c: "".join(map(str, v[j, :, 0]))
+                                           for j, c in enumerate(t2.columns)}
+                                       for k, v in t2.outcomes.items()},
+                             "files": {k: str(v) for k, v in t2.write(out_dir, "table2").items()}}
+        printed.append(t2.to_markdown())
+    return results, printed
+
+
+def _fitness_ranking(args, models, objs, hulls, cfg) -> tuple[dict, str]:
+    _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
+    rk = E.fitness_ranking(models, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
+                           backend=args.backend, object_hulls=hulls, progress=not args.quiet,
+                           executor=args.executor)
+    text = (f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "
+            f"within-object Spearman {rk['spearman']:.2f} ({rk['objects_ranked']} objects with "
+            f"differing candidates), grasp AUC {rk['grasp_auc']:.2f}; trials passed of 11: "
+            f"generator's own {rk['trials_first']:.2f}, average candidate {rk['trials_mean']:.2f}, "
+            f"fitness net's pick {rk['trials_picked']:.2f}, best {rk['trials_best']:.2f}, "
+            f"worst {rk['trials_worst']:.2f}")
+    return rk, text
+
+
+def _neighbourhood(args, generators: dict, objs, hulls, cfg) -> tuple[dict, str]:
+    k = args.neighbourhood
+    sims = {}
+    for name, m in generators.items():
+        _say(f"neighbourhood of {name}: {k} candidates per object, all simulated")
+        sims[name] = E.candidate_outcomes(m, objs, cfg, candidates=k, key=args.seed,
+                                          backend=args.backend, object_hulls=hulls,
+                                          progress=not args.quiet, executor=args.executor)[3]
+    stats = {name: E.neighbourhood_stats(v) for name, v in sims.items()}
+    first, *others = sims
+    gains = {name: E.paired_gain(sims[first], sims[name], seed=args.seed) for name in others}
+    lines = [f"Generators on {len(objs)} objects, {k} candidates each (own design + {k - 1} "
+             "latent perturbations), trials passed of 11 and grasp success:",
+             "| generator | own design: trials | own: grasp | all candidates: trials | all: grasp |",
+             "|---|---|---|---|---|"]
+    lines += [f"| {n} | {s['trials_own']:.2f} | {s['grasp_own']:.3f} | {s['trials_mean']:.2f} | "
+              f"{s['grasp_mean']:.3f} |" for n, s in stats.items()]
+    for name, g in gains.items():
+        lines.append(f"{first} minus {name}, paired over objects (95% bootstrap interval; "
+                     "objects better / worse):")
+        lines += [f"  {m:12s} {v['diff']:+.3f}  [{v['ci_low']:+.3f}, {v['ci_high']:+.3f}]  "
+                  f"{v['better']} / {v['worse']}" for m, v in g.items()]
+    result = {"stats": stats, "gains": gains, "outcomes": {n: v.tolist() for n, v in sims.items()}}
+    return result, "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    error, tables, extras = _check(args)
+    if error:
+        return _fail(error)
     try:
         ray_executor.executor_from_cli(args)
     except F2FError as exc:  # the extra missing, or no cluster at --ray-address
         return _fail(str(exc))
-
     start = time.perf_counter()
-    from f2f_jax import tables as E
-    from f2f_jax.data import held_out_objects
-
     run_dir = Path(args.run_dir).expanduser() if args.run_dir else None
     if run_dir is not None and not run_dir.is_dir():
         return _fail(f"--run-dir {run_dir}: no such directory")
@@ -168,197 +345,46 @@ def main(argv=None) -> int:
     if args.sim_preset is not None:
         cfg = config.with_sim_preset(cfg, args.sim_preset)
     out_dir = Path(args.out) if args.out else (run_dir / "eval" if run_dir else Path("runs/eval"))
-
-    # -- objects -------------------------------------------------------------------------------
-    if run_dir is not None:
-        source = run_dir / "objects" / "source.json"
-        meta = json.loads(source.read_text()) if source.exists() else {}
-        if args.fresh and meta.get("source") == "builtin" and meta.get("seed") == args.seed:
-            return _fail(f"--fresh with --seed {args.seed}: the run made its built-in objects with "
-                         "that seed, so they would not be new; pick another --seed")
-        try:
-            objects, names = held_out_objects(run_dir, cfg.geometry)
-        except (FileNotFoundError, ValueError) as exc:
-            return _fail(str(exc))
-        what = f"held-out objects of {run_dir}"
-        if args.fresh:
-            import numpy as np
-
-            new, new_names = _builtin_objects(args.fresh, args.seed, cfg)
-            objects = np.concatenate([objects[: args.objects], new])
-            names = list(names[: args.objects]) + [f"fresh/{n}" for n in new_names]
-            what += f" + {args.fresh} new built-in objects (seed {args.seed})"
-    else:
-        objects, names = _builtin_objects(args.objects or 12, args.seed, cfg)
-        what = f"built-in objects (seed {args.seed})"
-    if args.objects is not None and not args.fresh:
-        objects, names = objects[: args.objects], names[: args.objects]
+    try:
+        objects, names, what = _objects(args, run_dir, cfg)
+    except ValueError as exc:
+        return _fail(str(exc))
     if len(objects) == 0:
         return _fail(f"no objects to evaluate ({what})")
     where = " on ray" if args.executor == "ray" else ""
     _say(f"{len(objects)} {what}; simulator: {args.backend}{where}; output: {out_dir}")
 
-    # -- designers -----------------------------------------------------------------------------
-    designers, table2_rows, row_notes = {}, [], []
-    pool_origins = []  # FingerPair.origin of the design pool's picks, one per object
-    try:
-        designers["WSG50"] = E.wsg_fmf_designer(cfg)
-        table2_rows.append("WSG50")
-        row_notes.append("WSG50: Schunk's standard WSG-FMF fingers (the mesh pybullet_data ships; "
-                       "faces meet at the object's mid-plane at full closure, as every finger "
-                       "here); Flat pads: ideal flat fingertips (ours, not in the paper)")
-    except ImportError as exc:  # MissingExtraError: the mesh ships with pybullet
-        _say(f"WSG50 row (WSG-FMF fingers) skipped: {exc}")
-        row_notes.append(f"WSG50 (WSG-FMF fingers) not run: {exc}")
-    designers["Flat pads"] = E.wsg50_designer(cfg)
-    designers["Imprint"] = E.imprint_designer(cfg)
-    table2_rows.append("Imprint")
-    if run_dir is not None:
-        models, why = _load_models(run_dir)
-        if models is None:
-            _say(f"no usable checkpoint in {run_dir} ({why}): running the baseline rows only")
-            if args.design_search:
-                _say("--design-search needs a checkpoint: skipping that row")
-        else:
-            import jax
-
-            row = E.OBJECTIVE_ROWS.get(models.objectives, f"Fit2Form ({models.objectives})")
-            _say(f"{row}: {models.source}")
-            if not args.no_randemb:
-                designers["RandEmb+FN"] = E.random_embedding_designer(
-                    models, jax.random.key(args.seed), samples=args.randemb_samples,
-                    steps=args.randemb_steps)
-            designers[row] = E.models_designer(models)
-            table2_rows.append(row)
-            if args.design_search:
-                try:
-                    from f2f_jax.designer import design
-                except ImportError as exc:
-                    _say(f"no design API yet ({exc}): skipping the design-search row")
-                else:
-                    k = args.design_search
-                    search = functools.partial(design, params=models, candidates=k, verify=True,
-                                               backend=args.backend, executor=args.executor,
-                                               progress=False if args.quiet else None)
-                    name = f"Fit2Form + search ({k}, verify)"  # the generator's candidates only
-                    designers[name] = E.pair_designer(functools.partial(search, imprint=False),
-                                                      batched=True, desc=name)
-                    table2_rows.append(name)
-                    # design()'s default with verify: the imprint pair and its variants join
-                    pool_name = f"Design pool ({k} + imprints, verify)"
-
-                    def pool(objs):
-                        pairs = search(objs, imprint=True)
-                        pool_origins.extend(pair.origin for pair in pairs)
-                        return pairs
-
-                    designers[pool_name] = E.pair_designer(pool, batched=True, desc=pool_name)
-                    table2_rows.append(pool_name)
-    elif args.design_search:
-        _say("--design-search needs --run-dir with a checkpoint: skipping that row")
-    ranked = models if run_dir is not None and args.fitness_ranking else None
-    if args.fitness_ranking and ranked is None:
-        _say("--fitness-ranking needs --run-dir with a checkpoint: skipped")
-    generators = {}  # models compared by --neighbourhood: the run's first, then the extras
-    if args.neighbourhood and (run_dir is None or models is None):
-        _say("--neighbourhood needs --run-dir with a checkpoint: skipped")
-    elif args.neighbourhood:
-        generators[E.OBJECTIVE_ROWS.get(models.objectives, f"Fit2Form ({models.objectives})")] = models
-    for name, path in extras:
-        models_x, why = _load_models(path)
-        if models_x is None:
-            _say(f"--extra {name}: no usable checkpoint in {path} ({why}): row skipped")
-            continue
-        designers[name] = E.models_designer(models_x)
-        if generators:
-            generators[name] = models_x
-
-    # -- designs once, hulls once, then the tables ---------------------------------------------
+    rows = _Rows()
+    _baseline_rows(rows, cfg)
+    _model_rows(rows, args, run_dir, extras)
+    # designs once, hulls once, then the tables
     progress = not args.quiet
-    objs, hulls, notes = E.prepare_objects(objects, cfg, progress=progress)
+    objs, hulls, notes, kept = E.prepare_objects(objects, cfg, progress=progress, return_kept=True)
+    names = [names[i] for i in kept]
     for note in notes:
         _say(note)
     designs = {}
-    for name, designer in designers.items():
+    for name, designer in rows.designers.items():
         _say(f"designing: {name}")
         designs.update(E.make_designs({name: designer}, objs, progress=progress))
-    if pool_origins:
+    if rows.pool_origins:
         picks = ", ".join(f"{n} {origin}" for origin, n in
-                          collections.Counter(pool_origins).most_common())
-        row_notes.append(f"Design pool: where the verified picks of {len(pool_origins)} objects "
-                         f"came from: {picks}")
-        _say(row_notes[-1])
-    if notes:  # prepare_objects dropped some: keep the names in step
-        dropped = {int(n.split()[1]) for n in notes if n.startswith("object ")}
-        names = [n for i, n in enumerate(names) if i not in dropped]
+                          collections.Counter(rows.pool_origins).most_common())
+        rows.notes.append(f"Design pool: where the verified picks of {len(rows.pool_origins)} objects "
+                          f"came from: {picks}")
+        _say(rows.notes[-1])
     results = {"objects": len(objs), "names": names, "source": what, "backend": args.backend,
                "config": args.config or ("run" if run_dir and _run_config(run_dir) else "default"),
                "design_seconds": {k: round(d.seconds, 2) for k, d in designs.items()}}
-    printed = []
-    if 1 in tables:
-        t1 = E.table1(designs, objs, cfg, backend=args.backend, progress=progress, object_hulls=hulls,
-                      executor=args.executor)
-        t1.notes[:0] = notes + row_notes
-        results["table1"] = {"values": t1.values, "feasible": t1.feasible,
-                             "sim_seconds": round(t1.sim_seconds, 2),
-                             "outcomes": {k: ["".join(map(str, o)) for o in v]
-                                          for k, v in t1.outcomes.items()},
-                             "files": {k: str(v) for k, v in t1.write(out_dir, "table1").items()}}
-        printed.append(t1.to_markdown())
-    if 2 in tables:
-        t2 = E.table2({k: designs[k] for k in table2_rows}, objs, cfg, backend=args.backend,
-                      progress=progress, object_hulls=hulls, seed=args.seed,
-                      executor=args.executor)
-        t2.notes[:0] = notes + row_notes
-        results["table2"] = {"values": t2.values, "feasible": t2.feasible,
-                             "sim_seconds": round(t2.sim_seconds, 2),
-                             "grasp": {k: {c: "".join(map(str, v[j, :, 0]))
-                                           for j, c in enumerate(t2.columns)}
-                                       for k, v in t2.outcomes.items()},
-                             "files": {k: str(v) for k, v in t2.write(out_dir, "table2").items()}}
-        printed.append(t2.to_markdown())
-    if ranked is not None:
-        _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
-        rk = E.fitness_ranking(ranked, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
-                               backend=args.backend, object_hulls=hulls, progress=progress,
-                               executor=args.executor)
-        results["fitness_ranking"] = rk
-        printed.append(
-            f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "
-            f"within-object Spearman {rk['spearman']:.2f} ({rk['objects_ranked']} objects with "
-            f"differing candidates), grasp AUC {rk['grasp_auc']:.2f}; trials passed of 11: "
-            f"generator's own {rk['trials_first']:.2f}, average candidate {rk['trials_mean']:.2f}, "
-            f"fitness net's pick {rk['trials_picked']:.2f}, best {rk['trials_best']:.2f}, "
-            f"worst {rk['trials_worst']:.2f}")
-    if generators:
-        k = args.neighbourhood
-        sims = {}
-        for name, m in generators.items():
-            _say(f"neighbourhood of {name}: {k} candidates per object, all simulated")
-            sims[name] = E.candidate_outcomes(m, objs, cfg, candidates=k, key=args.seed,
-                                              backend=args.backend, object_hulls=hulls,
-                                              progress=progress, executor=args.executor)[3]
-        stats = {name: E.neighbourhood_stats(v) for name, v in sims.items()}
-        first, *others = sims
-        gains = {name: E.paired_gain(sims[first], sims[name], seed=args.seed) for name in others}
-        results["neighbourhood"] = {"stats": stats, "gains": gains,
-                                    "outcomes": {n: v.tolist() for n, v in sims.items()}}
-        lines = [f"Generators on {len(objs)} objects, {k} candidates each (own design + {k - 1} "
-                 "latent perturbations), trials passed of 11 and grasp success:",
-                 "| generator | own design: trials | own: grasp | all candidates: trials | all: grasp |",
-                 "|---|---|---|---|---|"]
-        lines += [f"| {n} | {s['trials_own']:.2f} | {s['grasp_own']:.3f} | {s['trials_mean']:.2f} | "
-                  f"{s['grasp_mean']:.3f} |" for n, s in stats.items()]
-        for name, g in gains.items():
-            lines.append(f"{first} minus {name}, paired over objects (95% bootstrap interval; "
-                         "objects better / worse):")
-            lines += [f"  {m:12s} {v['diff']:+.3f}  [{v['ci_low']:+.3f}, {v['ci_high']:+.3f}]  "
-                      f"{v['better']} / {v['worse']}" for m, v in g.items()]
-        printed.append("\n".join(lines))
+    made, printed = _table_results(args, designs, rows, objs, hulls, cfg, notes, tables, out_dir)
+    results.update(made)
+    if rows.ranked is not None:
+        results["fitness_ranking"], text = _fitness_ranking(args, rows.ranked, objs, hulls, cfg)
+        printed.append(text)
+    if rows.generators:
+        results["neighbourhood"], text = _neighbourhood(args, rows.generators, objs, hulls, cfg)
+        printed.append(text)
     results["seconds"] = round(time.perf_counter() - start, 1)
-
-    from f2f_jax.fileio import atomic_path
-
     with atomic_path(out_dir / "results.json") as tmp:
         tmp.write_text(json.dumps(results, indent=1))
     print("\n".join(printed))

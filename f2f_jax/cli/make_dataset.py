@@ -13,8 +13,8 @@ import sys
 from pathlib import Path
 
 from f2f_jax import config
-from f2f_jax.dataset.pretraining import build_grasp_dataset
 from f2f_jax.data import load_or_make_objects
+from f2f_jax.dataset.pretraining import build_grasp_dataset
 from f2f_jax.dataset.store import GraspStore
 from f2f_jax.errors import F2FError
 from f2f_jax.sim import ray_executor
@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=None,
                    help="objects per stored chunk (default 8; with --executor ray, 2 per cluster "
                         "CPU, at least 8, so every CPU has work)")
-    p.add_argument("--backend", default="mujoco", choices=["mujoco", "mjx", "warp"])
+    p.add_argument("--backend", default="mujoco", choices=list(config.BACKENDS))
     ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
     if args.n <= 0:

@@ -203,19 +203,20 @@ def table1_values(outcomes: np.ndarray) -> dict[str, float]:
 
 
 def prepare_objects(objects, cfg: Config, *, object_hulls=None, cache_dir=None,
-                    progress: bool = True):
+                    progress: bool = True, return_kept: bool = False):
     """Object volumes and their collision hulls, computed once for all designers and conditions.
 
     objects: [N, R, R, R]; object_hulls: optional precomputed list of N ``Hulls``.
-    Returns (kept objects [M, R, R, R], hulls list of M, notes).  An object whose hulls cannot be
-    made (a DecompositionError) is dropped with a note: it says nothing about any finger.
+    Returns (kept objects [M, R, R, R], hulls list of M, notes), and with ``return_kept`` the
+    kept objects' indices [M] as a fourth item.  An object whose hulls cannot be made (a
+    DecompositionError) is dropped with a note: it says nothing about any finger.
     """
     objs = objects_array(objects, cfg.geometry.resolution)
     if object_hulls is not None:
         hulls = list(object_hulls)
         if len(hulls) != len(objs):
             raise ValueError(f"object_hulls: {len(hulls)} for {len(objs)} objects")
-        return objs, hulls, []
+        return (objs, hulls, [], list(range(len(objs)))) if return_kept else (objs, hulls, [])
     items = range(len(objs))
     if progress:
         from tqdm.auto import tqdm
@@ -231,7 +232,7 @@ def prepare_objects(objects, cfg: Config, *, object_hulls=None, cache_dir=None,
             log.warning(notes[-1])
     if not keep:
         raise DecompositionError("no object could be decomposed into collision hulls")
-    return objs[keep], hulls, notes
+    return (objs[keep], hulls, notes, keep) if return_kept else (objs[keep], hulls, notes)
 
 
 def _simulate_designs(designs: dict[str, Design], objs, hulls, cfg, backend, progress,
