@@ -28,6 +28,7 @@ import numpy as np  # noqa: E402
 import trimesh  # noqa: E402
 
 from f2f_jax.config import GeometryConfig  # noqa: E402
+from f2f_jax.geometry import coacd_pieces as OH  # noqa: E402
 from f2f_jax.geometry import (  # noqa: E402
     finger_from_shape,
     finger_pose,
@@ -37,7 +38,6 @@ from f2f_jax.geometry import (  # noqa: E402
 )
 from f2f_jax.geometry import finger_tiling as FH  # noqa: E402
 from f2f_jax.geometry import hulls as H  # noqa: E402
-from f2f_jax.geometry import coacd_pieces as OH  # noqa: E402
 
 
 def primitive_objects(n: int, seed: int) -> list[trimesh.Trimesh]:

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -43,62 +42,10 @@ from pathlib import Path
 import numpy as np
 
 from f2f_jax import config, sim
+from f2f_jax.bench.agreement import agreement_report, builtin_triples
 from f2f_jax.config import TRIAL_NAMES
-from f2f_jax.data import builtin_object
-from f2f_jax.dataset.pretraining import KINDS, pretraining_pairs
-from f2f_jax.geometry import mesh_to_tsdf
+from f2f_jax.dataset.pretraining import KINDS
 from f2f_jax.geometry.hull_pool import object_hulls_many
-
-
-def make_triples(n: int, seed: int, cfg, kinds=KINDS):
-    """N (object, left, right) triples from builtin objects, pairs as the pretraining dataset makes
-    them (imprint, WSG50, one cut pair per object, in that order, filtered to ``kinds``).
-
-    Returns (object_tsdfs [M, R, R, R] of the M objects used, triples: list of dicts with keys
-    object (index into object_tsdfs), name, kind, left, right [R, R, R] float32).
-    Object i is ``builtin_object(i, seed)``; cut pairs draw their shapes from the same M objects
-    with ``np.random.default_rng(seed)``, so the set depends only on (n, seed, kinds, cfg).
-    """
-    if n < 1:
-        raise ValueError(f"--n must be >= 1, got {n}")
-    kinds = tuple(kinds)
-    unknown = set(kinds) - set(KINDS)
-    if unknown:
-        raise ValueError(f"unknown pair kinds {sorted(unknown)}; choose from {KINDS}")
-    tsdfs, names = [], []
-    n_objects = math.ceil(n / len(kinds))
-    while True:
-        while len(tsdfs) < n_objects:
-            mesh = builtin_object(len(tsdfs), seed)
-            tsdfs.append(mesh_to_tsdf(mesh, cfg.geometry))
-            names.append(str(mesh.metadata.get("name", f"builtin/{len(names):04d}")))
-        pool = np.stack(tsdfs)
-        rng = np.random.default_rng(seed)
-        triples = []
-        for i in range(len(pool)):
-            for left, right, kind in pretraining_pairs(pool, i, rng, cfg, n_cut=1 if "cut" in kinds else 0):
-                if kind in kinds:
-                    triples.append(dict(object=i, name=names[i], kind=kind,
-                                        left=np.asarray(left, np.float32), right=np.asarray(right, np.float32)))
-        if len(triples) >= n:
-            return pool, triples[:n]
-        n_objects += max(1, math.ceil((n - len(triples)) / len(kinds)))  # a cut pair was skipped
-
-
-def agreement_report(mj: np.ndarray, mx: np.ndarray) -> dict:
-    """Agreement of two [N, 11] outcome arrays: per trial, overall, whole vectors, grasp confusion."""
-    same = mj == mx
-    g_mj, g_mx = mj[:, 0].astype(bool), mx[:, 0].astype(bool)
-    both = g_mj & g_mx
-    return dict(
-        per_trial=[float(x) for x in same.mean(0)],
-        agreement=float(same.mean()),
-        whole_vectors=float(same.all(1).mean()),
-        grasp_confusion=dict(both_hold=int(both.sum()), only_mujoco=int((g_mj & ~g_mx).sum()),
-                             only_mjx=int((~g_mj & g_mx).sum()), neither=int((~g_mj & ~g_mx).sum())),
-        # trials 1..10 where both held the grasp (elsewhere they are 0 == 0 by the protocol)
-        per_trial_both_held=[float(x) for x in same[both].mean(0)] if both.any() else None,
-    )
 
 
 def _vector(row) -> str:
@@ -137,7 +84,7 @@ def main(argv=None) -> int:
           f"{args.n} triples, kinds {' '.join(args.kinds)}, seed {args.seed}", flush=True)
 
     t = time.perf_counter()
-    pool, triples = make_triples(args.n, args.seed, cfg, args.kinds)
+    pool, triples = builtin_triples(args.n, args.seed, cfg, args.kinds)
     used = sorted({tr["object"] for tr in triples})
     made = object_hulls_many([pool[i] for i in used], cfg, cache_dir=args.cache_dir, workers=args.workers)
     by_object = dict(zip(used, made))

@@ -31,18 +31,16 @@ import jax.numpy as jp
 import mujoco
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from f2f_jax import config  # noqa: E402
-from f2f_jax.geometry import imprint_fingers  # noqa: E402
-from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
+from f2f_jax import config
+from f2f_jax.bench.agreement import load_objects
+from f2f_jax.geometry import imprint_fingers
+from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.hulls import with_max_vertices
-from f2f_jax.geometry.pieces import object_pieces_many  # noqa: E402
-from f2f_jax.sim import mjx_batch, mjx_collision  # noqa: E402
-from f2f_jax.sim.mujoco_cpu import batched_model_options  # noqa: E402
-from f2f_jax.sim.protocol import GraspRunner  # noqa: E402
-from f2f_jax.sim.scene import build_model  # noqa: E402
-from sim_agreement import load_objects  # noqa: E402
+from f2f_jax.geometry.pieces import object_pieces_many
+from f2f_jax.sim import mjx_batch, mjx_collision
+from f2f_jax.sim.mujoco_cpu import batched_model_options
+from f2f_jax.sim.protocol import GraspRunner
+from f2f_jax.sim.scene import build_model
 
 _STATE = ("qpos", "qvel", "act", "ctrl", "qacc_warmstart")
 

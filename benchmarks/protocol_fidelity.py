@@ -16,12 +16,12 @@ Triples, per object (``--n-objects`` builtin objects of ``--seed``, or the first
 "wsg50-fmf" (the paper's WSG50 fingers, Schunk's WSG-FMF: ``data.sources.wsg_fmf_fingers``),
 "flat" (``geometry.wsg50_fingers``, ideal flat pads), "cut" (a pair cut from two other objects,
 as the pretraining dataset makes them) and "perturbed" (the imprint pair plus a smooth random
-field: designed-looking fingers, ``sim_agreement.perturbed_finger``).
+field: designed-looking fingers, ``bench.agreement.perturbed_finger``).
 
 Printed: per finger kind and simulator the grasp success, mean trials passed of 11 and mean S and
 R success; per simulator of ours its agreement with PyBullet per trial name, per finger kind,
 overall and as whole vectors; the grasp confusion; the first differing triples.  ``--json PATH``:
-``agreement`` ({fast, reference}: ``sim_agreement.agreement_stats`` against "pybullet"), ``rates``
+``agreement`` ({fast, reference}: ``bench.agreement.agreement_stats`` against "pybullet"), ``rates``
 ({kind: {simulator: {grasp, trials, S, R}}}, and "all"), n, kinds, objects, seconds, differing,
 triples (object, kind) and outcomes ({simulator: one 11-digit string per triple}): enough to judge
 an ablation of our side against the same PyBullet outcomes without running PyBullet again.
@@ -49,15 +49,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from f2f_jax import config, sim  # noqa: E402
-from f2f_jax.config import TRIAL_NAMES  # noqa: E402
-from f2f_jax.dataset.pretraining import pretraining_pairs  # noqa: E402
-from f2f_jax.geometry import wsg50_fingers  # noqa: E402
-from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
-from f2f_jax.geometry.pieces import object_pieces_many  # noqa: E402
-from sim_agreement import _rates, _vector, agreement_stats, load_objects, perturbed_finger  # noqa: E402
+from f2f_jax import config, sim
+from f2f_jax.bench.agreement import agreement_stats, load_objects, perturbed_finger, rates, vector_text
+from f2f_jax.config import TRIAL_NAMES
+from f2f_jax.dataset.pretraining import pretraining_pairs
+from f2f_jax.geometry import wsg50_fingers
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.pieces import object_pieces_many
 
 FINGER_KINDS = ("imprint", "wsg50-fmf", "flat", "cut", "perturbed")
 SIMULATORS = ("fast", "reference", "pybullet")
@@ -121,10 +119,9 @@ ABLATIONS: tuple[tuple[str, str, dict], ...] = (
 def _peer_chunk(args):
     """Worker process: one PyBullet client over a chunk of (object, left, right) hulls."""
     objects, lefts, rights, cfg, changes = args
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
     import dataclasses
 
-    import pybullet_original as peer
+    from f2f_jax.bench import pybullet_runs as peer
 
     fields = {f.name for f in dataclasses.fields(peer.OriginalProtocol)}
     protocol = dataclasses.replace(peer.PROTOCOL, **{k: v for k, v in changes.items() if k in fields})
@@ -152,8 +149,7 @@ def run_peer(objects, lefts, rights, cfg, workers: int, changes: dict | None = N
 def render_both(triple: dict, object_hulls, left_hulls, right_hulls, cfg, path: Path) -> None:
     """One triple as our protocol (``cfg``) and the PyBullet original ran it: two strips of the
     same panels on one scale (``f2f_jax.sim.view.draw_strips``)."""
-    import pybullet_original as peer
-
+    from f2f_jax.bench import pybullet_runs as peer
     from f2f_jax.sim import view
 
     model = sim.build_model(object_hulls, left_hulls, right_hulls, cfg)
@@ -215,7 +211,7 @@ def _agreement(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def _kind_rates(outcomes: np.ndarray, kinds: list[str], kind: str) -> dict:
-    return _rates(np.asarray(outcomes)[np.array(kinds) == kind].astype(bool))
+    return rates(np.asarray(outcomes)[np.array(kinds) == kind].astype(bool))
 
 
 def main(argv=None) -> int:
@@ -281,15 +277,15 @@ def main(argv=None) -> int:
 
     stats = {name: agreement_stats(outcomes[name], outcomes["pybullet"], kinds, (name, "pybullet"))
              for name in presets}
-    rates = {}
+    by_kind = {}
     for kind in [*dict.fromkeys(kinds), "all"]:
         m = np.ones(len(kinds), bool) if kind == "all" else np.array(kinds) == kind
-        rates[kind] = {s: _rates(outcomes[s][m].astype(bool)) for s in SIMULATORS}
-        rates[kind]["n"] = int(m.sum())
+        by_kind[kind] = {s: rates(outcomes[s][m].astype(bool)) for s in SIMULATORS}
+        by_kind[kind]["n"] = int(m.sum())
 
     print(f"\n{'kind':10s} {'n':>4s}  " + "  ".join(f"{s:>26s}" for s in SIMULATORS))
     print(f"{'':10s} {'':>4s}  " + "  ".join(f"{'grasp  trials    S     R':>26s}" for _ in SIMULATORS))
-    for kind, r in rates.items():
+    for kind, r in by_kind.items():
         cells = [f"{r[s]['grasp']:6.3f} {r[s]['trials']:6.2f} {r[s]['S']:5.2f} {r[s]['R']:5.2f}"
                  for s in SIMULATORS]
         print(f"{kind:10s} {r['n']:4d}  " + "  ".join(f"{c:>26s}" for c in cells))
@@ -310,8 +306,8 @@ def main(argv=None) -> int:
                  if not np.array_equal(outcomes["fast"][i], outcomes["pybullet"][i])]
     print(f"\n{len(differing)} triples differ (fast vs pybullet); the first {SHOWN_DIFFERING}:")
     for i in differing[:SHOWN_DIFFERING]:
-        print(f"  {i:4d} {triples[i]['name']:28s} {kinds[i]:10s} fast {_vector(outcomes['fast'][i])}"
-              f"  pybullet {_vector(outcomes['pybullet'][i])}")
+        print(f"  {i:4d} {triples[i]['name']:28s} {kinds[i]:10s} fast {vector_text(outcomes['fast'][i])}"
+              f"  pybullet {vector_text(outcomes['pybullet'][i])}")
     if args.render and differing:
         i = next((i for i in differing if kinds[i] == "imprint"), differing[0])
         render_both(triples[i], obj_hulls[i], lh[i], rh[i], presets["fast"], args.render)
@@ -326,11 +322,11 @@ def main(argv=None) -> int:
     if args.json:
         args.json.write_text(json.dumps(dict(ablations=ablations,
             n=len(triples), kinds=args.kinds, objects=str(args.objects or "builtin"),
-            config=args.config, agreement=stats, rates=rates, seconds=seconds,
+            config=args.config, agreement=stats, rates=by_kind, seconds=seconds,
             triples=[dict(object=tr["name"], kind=tr["kind"]) for tr in triples],
             outcomes={s: ["".join(map(str, row)) for row in outcomes[s]] for s in SIMULATORS},
             differing=[dict(index=i, object=triples[i]["name"], kind=kinds[i],
-                            **{s: _vector(outcomes[s][i]) for s in SIMULATORS})
+                            **{s: vector_text(outcomes[s][i]) for s in SIMULATORS})
                        for i in differing]), indent=1))
         print(f"wrote {args.json}")
     return 0

@@ -47,178 +47,22 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from f2f_jax import config, sim
+from f2f_jax.bench.agreement import (
+    FINGER_KINDS,
+    agreement_stats,
+    load_objects,
+    mixed_triples,
+    preset_hulls,
+    render_differing,
+    vector_text,
+)
 from f2f_jax.config import SIM_PRESETS, TRIAL_NAMES
-from f2f_jax.data import builtin_objects, load_mesh, mesh_files
-from f2f_jax.dataset.pretraining import KINDS, pretraining_pairs
-from f2f_jax.errors import F2FError
-from f2f_jax.geometry import is_feasible, largest_component, mesh_to_tsdf
-from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.data import mesh_files
 from f2f_jax.geometry.hulls import with_max_vertices
-from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
 
-FINGER_KINDS = (*KINDS, "perturbed")
-PERTURB_GRID = 5  # the random field's coarse grid, per side, upsampled to the volume
-PERTURB_AMPLITUDE = 0.3  # the field's peak, as a share of the TSDF range [-1, 1]
-PERTURB_TRIES = 10  # draws per finger before a perturbed pair is skipped
 SHOWN_DIFFERING = 10
-_S = [i for i, name in enumerate(TRIAL_NAMES) if name.startswith("S")]
-_R = [i for i, name in enumerate(TRIAL_NAMES) if name.startswith("R")]
-
-
-def perturbed_finger(finger: np.ndarray, rng: np.random.Generator, geometry,
-                     *, amplitude: float = PERTURB_AMPLITUDE, tries: int = PERTURB_TRIES):
-    """A designed-looking variant of ``finger`` [R, R, R]: plus a smooth random field, or None.
-
-    The field is Gaussian noise on a ``PERTURB_GRID``^3 grid, upsampled to R^3 (cubic spline)
-    and scaled to a peak of ``amplitude`` x 2 (the TSDF range); the sum is clipped to [-1, 1]
-    and reduced to its largest component.  Up to ``tries`` draws are made until one is feasible
-    (``geometry.is_feasible``); None when none is.
-    """
-    r = geometry.resolution
-    for _ in range(tries):
-        field = ndimage.zoom(rng.standard_normal((PERTURB_GRID,) * 3), r / PERTURB_GRID, order=3)
-        field *= 2 * amplitude / np.abs(field).max()
-        out = largest_component(np.clip(finger + field, -1.0, 1.0).astype(np.float32))
-        if is_feasible(out, geometry):
-            return out
-    return None
-
-
-def load_objects(n: int, seed: int, directory: Path | None, geometry):
-    """Object volumes [M, R, R, R] and M names: ``n`` builtin objects, or the first ``n`` meshes
-    of ``directory`` that become volumes (the others are skipped with a message)."""
-    if directory is None:
-        meshes = builtin_objects(n, seed=seed)
-        return np.stack([mesh_to_tsdf(m, geometry) for m in meshes]), [m.metadata["name"] for m in meshes]
-    tsdfs, names = [], []
-    root = directory.resolve().name or "meshes"
-    for path in mesh_files(directory):
-        if len(tsdfs) == n:
-            break
-        name = f"{root}/{path.relative_to(directory).with_suffix('').as_posix()}"
-        try:
-            tsdfs.append(mesh_to_tsdf(load_mesh(path, name=name), geometry))
-        except F2FError as exc:
-            print(f"skipping {path}: {exc}")
-            continue
-        names.append(name)
-    return (np.stack(tsdfs) if tsdfs else np.zeros((0,) + (geometry.resolution,) * 3, np.float32)), names
-
-
-def make_triples(tsdfs: np.ndarray, names: list[str], n: int, seed: int, cfg) -> list[dict]:
-    """The first ``n`` triples over objects x ``FINGER_KINDS`` (fewer when the set runs out).
-
-    Each is a dict: object (index into tsdfs), name, kind, left, right ([R, R, R] float32).
-    Object i's imprint, WSG50 and cut pairs come from ``pretraining_pairs`` with
-    ``default_rng([seed, i])``, its perturbed pair from ``default_rng([seed, i, 1])``; a cut or
-    perturbed pair that cannot be made feasibly is skipped.
-    """
-    triples = []
-    for i in range(len(tsdfs)):
-        pairs = pretraining_pairs(tsdfs, i, np.random.default_rng([seed, i]), cfg, n_cut=1)
-        rng = np.random.default_rng([seed, i, 1])
-        left, right = (perturbed_finger(f, rng, cfg.geometry) for f in pairs[0][:2])
-        if left is not None and right is not None:
-            pairs.append((left, right, "perturbed"))
-        for left, right, kind in pairs:
-            triples.append(dict(object=i, name=names[i], kind=kind,
-                                left=np.asarray(left, np.float32), right=np.asarray(right, np.float32)))
-        if len(triples) >= n:
-            break
-    return triples[:n]
-
-
-def preset_hulls(tsdfs, cfg, threads: int):
-    """Object pieces of every volume under ``cfg``'s object_method: (list of Hulls or error
-    message, per-object seconds or None).  coacd goes through its disk cache in ``threads``
-    processes (not timed per object); any other method is timed call by call on this thread."""
-    if cfg.geometry.object_method == "coacd":
-        return object_pieces_many(list(tsdfs), cfg, workers=threads), None
-    hulls, seconds = [], []
-    for tsdf in tsdfs:
-        t = time.perf_counter()
-        try:
-            hulls.append(object_pieces(tsdf, cfg))
-        except (F2FError, ValueError) as exc:  # its triples score zeros, as in object_pieces_many
-            hulls.append(f"{type(exc).__name__}: {exc}")
-        seconds.append(time.perf_counter() - t)
-    return hulls, np.array(seconds)
-
-
-def _rates(out: np.ndarray) -> dict:
-    """Rates of [m, 11] bool outcomes: grasp success, mean trials passed, mean S and R success."""
-    return dict(grasp=float(out[:, 0].mean()), trials=float(out.sum(1).mean()),
-                S=float(out[:, _S].mean()), R=float(out[:, _R].mean()))
-
-
-def agreement_stats(out_a, out_b, kinds, labels=("judged", "judge")) -> dict:
-    """How two presets' [N, 11] outcomes of the same N triples agree; ``kinds``: N finger kinds.
-
-    Returns a dict of:
-
-    * ``agreement_per_trial``: share of the N x 11 trial outcomes that are equal;
-    * ``agreement_per_trial_kind``: that share per trial name ({"grasp": .., "S1": .., ...});
-    * ``agreement_per_kind``: that share per finger kind;
-    * ``agreement_vectors``: share of triples whose whole 11-vectors are equal;
-    * ``rates``: {kind: {label: {"grasp", "trials" (mean passed of 11), "S", "R"}}} per finger
-      kind in order of appearance, plus "all";
-    * ``grasp_confusion``: 2 x 2 counts ``[judged][judge]`` of the grasp trial, 0 = dropped,
-      1 = held (so ``[1][0]``: held by the judged preset (``out_a``) only);
-    * ``rate_gap_max``: the largest |rate difference| over finger kinds, in points: "grasp"
-      (grasp success) and "trials" (mean trials passed / 11).
-    """
-    a, b = np.asarray(out_a).astype(bool), np.asarray(out_b).astype(bool)
-    kinds = np.asarray(kinds)
-    if a.shape != b.shape or a.ndim != 2 or a.shape[1] != len(TRIAL_NAMES) or len(kinds) != len(a):
-        raise ValueError(f"agreement_stats: expected two [N, {len(TRIAL_NAMES)}] outcome arrays and N "
-                         f"kinds, got {a.shape}, {b.shape} and {kinds.shape}")
-    la, lb = labels
-    if la == lb:
-        raise ValueError(f"agreement_stats: the two labels must differ, got {labels}")
-    same = a == b
-    groups = {str(k): kinds == k for k in dict.fromkeys(kinds.tolist())}
-    rates = {k: {la: _rates(a[m]), lb: _rates(b[m])} for k, m in groups.items()}
-    rates["all"] = {la: _rates(a), lb: _rates(b)}
-    gaps = [(abs(r[la]["grasp"] - r[lb]["grasp"]), abs(r[la]["trials"] - r[lb]["trials"]))
-            for k, r in rates.items() if k != "all"]
-    ga, gb = a[:, 0], b[:, 0]
-    return dict(
-        agreement_per_trial=float(same.mean()),
-        agreement_per_trial_kind={name: float(x) for name, x in zip(TRIAL_NAMES, same.mean(0))},
-        agreement_per_kind={k: float(same[m].mean()) for k, m in groups.items()},
-        agreement_vectors=float(same.all(1).mean()),
-        rates=rates,
-        grasp_confusion=[[int((~ga & ~gb).sum()), int((~ga & gb).sum())],
-                         [int((ga & ~gb).sum()), int((ga & gb).sum())]],
-        rate_gap_max=dict(grasp=100 * max(g for g, _ in gaps),
-                          trials=100 * max(t for _, t in gaps) / len(TRIAL_NAMES)),
-    )
-
-
-def _vector(row) -> str:
-    """An outcome vector as "grasp S1..S4 R-30..R+30" digits."""
-    s = "".join(str(int(v)) for v in row)
-    return f"{s[0]} {s[1:5]} {s[5:]}"
-
-
-def _render(triples, differing, presets, out_dir: Path) -> None:
-    """Draw each differing triple with each preset: ``out_dir/<index>_<kind>_<label>.png``."""
-    from f2f_jax.sim.view import render_trials  # matplotlib: only when drawing
-
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for d in differing:
-        tr = triples[d["index"]]
-        for label, (cfg, hulls) in presets.items():
-            obj = hulls[tr["object"]]
-            if isinstance(obj, str):
-                print(f"  #{d['index']} {label}: no object hulls ({obj})")
-                continue
-            model = sim.build_model(obj, finger_hulls(tr["left"], cfg), finger_hulls(tr["right"], cfg), cfg)
-            path = out_dir / f"{d['index']:04d}_{tr['kind']}_{label}.png"
-            print(f"  drew #{d['index']} with {label} to {path} (outcome {_vector(render_trials(model, cfg, path))})")
 
 
 def main(argv=None) -> int:
@@ -270,7 +114,7 @@ def main(argv=None) -> int:
     tsdfs, names = load_objects(args.n_objects, args.seed, args.objects, base.geometry)
     if not len(tsdfs):
         p.error(f"--objects {args.objects}: none of its mesh files became an object volume")
-    triples = make_triples(tsdfs, names, args.n, args.seed, base)
+    triples = mixed_triples(tsdfs, names, args.n, args.seed, base)
     kinds = [tr["kind"] for tr in triples]
     counts = {k: kinds.count(k) for k in FINGER_KINDS if k in kinds}
     source = str(args.objects) if args.objects is not None else f"builtin (seed {args.seed})"
@@ -344,10 +188,10 @@ def main(argv=None) -> int:
     print(f"\n{len(differing)} differing triples" + (f", the first {SHOWN_DIFFERING}:" if differing else ""))
     for d in differing[:SHOWN_DIFFERING]:
         print(f"  #{d['index']:4d} {d['kind']:9s} {d['object']:28s} " + "  ".join(
-            f"{label} {_vector(v)}" for label, v in d["outcomes"].items()))
+            f"{label} {vector_text(v)}" for label, v in d["outcomes"].items()))
     if args.render and differing:
         try:
-            _render(triples, differing[:args.render], presets, args.out)
+            render_differing(triples, differing[:args.render], presets, args.out)
         except Exception as exc:  # noqa: BLE001 - a drawing is optional; the figures above stand
             print(f"rendering skipped: {type(exc).__name__}: {exc}")
 

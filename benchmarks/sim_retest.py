@@ -36,12 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from mjx_agreement import agreement_report, make_triples  # noqa: E402
-
-from f2f_jax import config, sim  # noqa: E402
-from f2f_jax.config import TRIAL_NAMES  # noqa: E402
+from f2f_jax import config, sim
+from f2f_jax.bench.agreement import agreement_report, builtin_triples
+from f2f_jax.config import TRIAL_NAMES
 
 PERTURBATIONS = {
     "mass": lambda s: dataclasses.replace(s, object_mass=s.object_mass * 1.01),
@@ -74,8 +71,8 @@ def _run_candidates(run_dir: Path, k: int, seed: int, workers):
     """The run's held-out objects, K design candidates each, their feasibility and object hulls."""
     from f2f_jax.data import held_out_objects
     from f2f_jax.geometry import postprocess
-    from f2f_jax.nets.inference import propose
     from f2f_jax.geometry.hull_pool import object_hulls_many
+    from f2f_jax.nets.inference import propose
     from f2f_jax.train.checkpoint import load_models
 
     models = load_models(run_dir)
@@ -121,7 +118,7 @@ def main(argv=None) -> int:
         from f2f_jax.geometry.hull_pool import object_hulls_many
 
         cfg = config.get(args.config)
-        pool, triples = make_triples(args.n, args.seed, cfg)
+        pool, triples = builtin_triples(args.n, args.seed, cfg)
         used = sorted({tr["object"] for tr in triples})
         by_object = dict(zip(used, object_hulls_many([pool[i] for i in used], cfg, workers=args.workers)))
         o = np.stack([pool[tr["object"]] for tr in triples])

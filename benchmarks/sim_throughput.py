@@ -50,14 +50,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from f2f_jax import config, sim  # noqa: E402
-from f2f_jax.geometry import imprint_fingers  # noqa: E402
-from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
-from f2f_jax.geometry.pieces import object_pieces, object_pieces_many  # noqa: E402
-from f2f_jax.sim import ray_executor  # noqa: E402
-from sim_agreement import load_objects  # noqa: E402
+from f2f_jax import config, sim
+from f2f_jax.bench.agreement import load_objects
+from f2f_jax.geometry import imprint_fingers
+from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
+from f2f_jax.sim import ray_executor
 
 
 def imprint_triples(tsdfs: np.ndarray, cfg):
@@ -167,7 +165,7 @@ def main(argv=None) -> int:
             run(f"{name} 1 thread", name, k, 1)
     if k > 0 and not args.no_pybullet:
         try:
-            import pybullet_original as peer
+            from f2f_jax.bench import pybullet_runs as peer
         except ImportError as exc:
             print(f"PyBullet peer skipped: {exc} (pip install -e '.[pybullet]')")
         else:
@@ -240,9 +238,8 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
     """Full 11-trial evaluations of the triples tiled to each batch size on ``backend``;
     prints a table and adds its JSON keys (``<backend>_...``) to ``result``, written to
     ``json_path`` after every row."""
-    from f2f_jax.sim.scene import build_model
-
     from f2f_jax.sim.mujoco_cpu import batched_model_options
+    from f2f_jax.sim.scene import build_model
 
     batched = importlib.import_module(f"f2f_jax.sim.{backend}_batch")
     if backend == "mjx":

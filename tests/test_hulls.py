@@ -12,7 +12,21 @@ from scipy.spatial import ConvexHull
 
 from f2f_jax.config import GeometryConfig, voxel_centres
 from f2f_jax.errors import DecompositionError, VolumeError
-from f2f_jax.geometry import coacd_pieces, finger_pose, finger_tiling, imprint_fingers, mesh_to_tsdf, wsg50_fingers
+from f2f_jax.geometry import (
+    coacd_pieces,
+    finger_pose,
+    finger_tiling,
+    imprint_fingers,
+    mesh_to_tsdf,
+    wsg50_fingers,
+)
+from f2f_jax.geometry.coacd_pieces import (
+    CoacdSettings,
+    decompose_mesh,
+    mesh_hulls,
+    object_hulls,
+    reduce_pieces,
+)
 from f2f_jax.geometry.finger_tiling import finger_height_map, finger_hulls
 from f2f_jax.geometry.hulls import (
     Hulls,
@@ -21,13 +35,6 @@ from f2f_jax.geometry.hulls import (
     pad_hulls,
     reduce_vertices,
     stack_hulls,
-)
-from f2f_jax.geometry.coacd_pieces import (
-    CoacdSettings,
-    decompose_mesh,
-    mesh_hulls,
-    object_hulls,
-    reduce_pieces,
 )
 
 G = GeometryConfig()

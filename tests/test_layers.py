@@ -24,7 +24,7 @@ LAYERS = [
     {"dataset", "nets"},
     {"train"},
     {"designer"},
-    {"tables"},
+    {"tables", "bench"},
     {"cli", "__init__"},
 ]
 LEVEL = {name: i for i, names in enumerate(LAYERS) for name in names}

@@ -5,18 +5,16 @@ runs in about 6 s.
 """
 
 import dataclasses
-import importlib
 
 import numpy as np
 import pytest
 
 pytest.importorskip("pybullet")
 
+from f2f_jax.bench import pybullet_runs as peer  # noqa: E402
 from f2f_jax.geometry import imprint_fingers, wsg50_fingers  # noqa: E402
 from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
 from f2f_jax.geometry.hulls import Hulls
-
-peer = importlib.import_module("benchmarks.pybullet_original")
 
 PROTO = peer.PROTOCOL
 # Fewest steps one grasp attempt can take: settle, open, lower (at least one step), close,

@@ -1,12 +1,15 @@
-"""The statistics, argument checks and perturbed fingers of benchmarks/sim_agreement.py, and the
-argument checks of the other simulator benchmarks (sim_throughput, mjx_contacts, gpu_check)."""
+"""The agreement statistics and perturbed fingers (f2f_jax.bench.agreement), the argument checks of
+benchmarks/sim_agreement.py and of the other simulator benchmarks (sim_throughput, mjx_contacts,
+gpu_check)."""
 
 import importlib
 
 import numpy as np
 import pytest
 
-agreement = importlib.import_module("benchmarks.sim_agreement")
+from f2f_jax.bench import agreement
+
+agreement_script = importlib.import_module("benchmarks.sim_agreement")
 
 KINDS = ["imprint", "imprint", "wsg50", "cut"]
 
@@ -87,14 +90,14 @@ def test_inconsistent_inputs_raise():
 ])
 def test_bad_arguments_exit_2(argv, capsys):
     with pytest.raises(SystemExit) as exc:
-        agreement.main(argv)
+        agreement_script.main(argv)
     assert exc.value.code == 2
     assert capsys.readouterr().err  # argparse explains why
 
 
 def test_empty_objects_directory_is_refused(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
-        agreement.main(["--objects", str(tmp_path)])
+        agreement_script.main(["--objects", str(tmp_path)])
     assert exc.value.code == 2
     assert "no mesh files" in capsys.readouterr().err
 

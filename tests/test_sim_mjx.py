@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from f2f_jax.geometry import imprint_fingers, wsg50_fingers
-from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.coacd_pieces import object_hulls
+from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.sim import mjx_batch, mjx_collision
 from f2f_jax.sim.protocol import run_trials
 from f2f_jax.sim.scene import build_model
