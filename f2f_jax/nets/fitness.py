@@ -16,15 +16,13 @@ logits (the paper's final sigmoid lives in the losses, which is numerically safe
 
 from __future__ import annotations
 
-from typing import Any
-
 import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
-from f2f_jax.config import TRIAL_NAMES, NetConfig
+from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.errors import VolumeError
-from f2f_jax.nets.shape import RESOLUTION, VolumeConv, _bn
+from f2f_jax.nets.shape import RESOLUTION, Net, VolumeConv, batch_norm
 
 N_OUTPUTS = len(TRIAL_NAMES)  # grasp, S1..S4, R-30..R+30
 
@@ -76,24 +74,22 @@ def fitness_input(obj: jax.Array, left: jax.Array, right: jax.Array) -> jax.Arra
     return jnp.concatenate([left_to_world(left), obj, right_to_world(right)], axis=-3)
 
 
-class ResidualBlock(nn.Module):
+class ResidualBlock(Net):
     """R(N): conv3-BN-ReLU-conv3-BN, add the input, ReLU (paper B.2). Keeps shape and width."""
 
-    config: NetConfig
-    dtype: Any = jnp.float32
 
     @nn.compact
     def __call__(self, x: jax.Array, *, train: bool) -> jax.Array:
         """x: [B, D, H, W, N] -> [B, D, H, W, N]."""
         width = x.shape[-1]
         y = VolumeConv(width, 3, 1, 1, dtype=self.dtype)(x)
-        y = nn.relu(_bn(self.config, train, self.dtype)(y))
+        y = nn.relu(batch_norm(self.config, train, self.dtype)(y))
         y = VolumeConv(width, 3, 1, 1, dtype=self.dtype)(y)
-        y = _bn(self.config, train, self.dtype)(y)
+        y = batch_norm(self.config, train, self.dtype)(y)
         return nn.relu(x + y)
 
 
-class FitnessNet(nn.Module):
+class FitnessNet(Net):
     """3D ResNet on the ``[B, 120, 40, 40]`` grasp layout -> ``[B, 11]`` outcome logits.
 
     Attributes
@@ -103,9 +99,7 @@ class FitnessNet(nn.Module):
     dtype: computation dtype; parameters stay float32.
     """
 
-    config: NetConfig
     n_outputs: int = N_OUTPUTS
-    dtype: Any = jnp.float32
 
     @nn.compact
     def __call__(self, volume: jax.Array, *, train: bool) -> jax.Array:
@@ -131,7 +125,7 @@ class FitnessNet(nn.Module):
 
         def down(x, width, kernel, name):
             x = VolumeConv(width, kernel, 2, kernel // 2, dtype=self.dtype, name=name)(x)
-            x = _bn(cfg, train, self.dtype, name=f"{name}_bn")(x)
+            x = batch_norm(cfg, train, self.dtype, name=f"{name}_bn")(x)
             return nn.leaky_relu(x, cfg.leaky_slope)
 
         x = volume[..., None].astype(self.dtype)
@@ -143,7 +137,7 @@ class FitnessNet(nn.Module):
         x = x.reshape(x.shape[0], -1)
         for i, width in enumerate(cfg.fitness_fc):
             x = nn.Dense(width, use_bias=False, dtype=self.dtype, name=f"fc{i}")(x)
-            x = _bn(cfg, train, self.dtype, name=f"fc{i}_bn")(x)
+            x = batch_norm(cfg, train, self.dtype, name=f"fc{i}_bn")(x)
             x = nn.leaky_relu(x, cfg.leaky_slope)
         logits = nn.Dense(self.n_outputs, dtype=self.dtype, name="logits")(x)
         return logits.astype(jnp.float32)

@@ -14,17 +14,14 @@ passes skip the encoder; the caller masks the optimiser so that only ``embedding
 
 from __future__ import annotations
 
-from typing import Any
-
 import jax
 import jax.numpy as jnp
 from flax import linen as nn
 
-from f2f_jax.config import NetConfig
-from f2f_jax.nets.shape import ShapeDecoder, ShapeEncoder, _bn
+from f2f_jax.nets.shape import Net, ShapeDecoder, ShapeEncoder, dense_layers
 
 
-class Generator(nn.Module):
+class Generator(Net):
     """Embedding network: object latent -> (left finger latent, right finger latent).
 
     Attributes
@@ -33,8 +30,6 @@ class Generator(nn.Module):
     dtype: computation dtype; parameters stay float32.
     """
 
-    config: NetConfig
-    dtype: Any = jnp.float32
 
     @nn.compact
     def __call__(self, object_latent: jax.Array, *, train: bool) -> tuple[jax.Array, jax.Array]:
@@ -53,17 +48,13 @@ class Generator(nn.Module):
         if object_latent.ndim != 2 or object_latent.shape[1] != cfg.latent_dim:
             raise ValueError(f"Generator input: expected [B, {cfg.latent_dim}], got shape "
                              f"{tuple(object_latent.shape)}")
-        x = object_latent.astype(self.dtype)
-        for width in cfg.generator_fc:
-            x = nn.Dense(width, use_bias=False, dtype=self.dtype)(x)
-            x = _bn(cfg, train, self.dtype)(x)
-            x = nn.leaky_relu(x, cfg.leaky_slope)
+        x = dense_layers(object_latent.astype(self.dtype), cfg.generator_fc, cfg, train, self.dtype)
         x = nn.Dense(2 * cfg.latent_dim, dtype=self.dtype)(x)
         x = jnp.tanh(x).astype(jnp.float32)
         return x[:, : cfg.latent_dim], x[:, cfg.latent_dim:]
 
 
-class FingerGenerator(nn.Module):
+class FingerGenerator(Net):
     """Object TSDF -> (left finger TSDF, right finger TSDF): encoder, embedding, decoder.
 
     Only ``train`` of the embedding network follows the argument: encoder and decoder stay in
@@ -72,8 +63,6 @@ class FingerGenerator(nn.Module):
     ``f2f_jax.nets.fitness_input`` to lay them out for the fitness net.
     """
 
-    config: NetConfig
-    dtype: Any = jnp.float32
 
     def setup(self):
         self.encoder = ShapeEncoder(self.config, dtype=self.dtype)

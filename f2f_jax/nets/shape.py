@@ -44,7 +44,7 @@ def check_volume_batch(x: jax.Array, name: str, resolution: int = RESOLUTION) ->
                           f"{tuple(x.shape)}")
 
 
-def _bn(cfg: NetConfig, train: bool, dtype: Any, name: str | None = None) -> nn.BatchNorm:
+def batch_norm(cfg: NetConfig, train: bool, dtype: Any, name: str | None = None) -> nn.BatchNorm:
     # epsilon 1e-5 as PyTorch's BatchNorm, which the original used
     return nn.BatchNorm(use_running_average=not train, momentum=cfg.bn_momentum, epsilon=1e-5,
                         dtype=dtype, name=name)
@@ -94,6 +94,24 @@ def conv3d(x: jax.Array, kernel: jax.Array, stride: int = 1, padding: int = 0) -
         return _fold_depth_conv(xp, kernel, stride)
     return jax.lax.conv_general_dilated(x, kernel, (stride,) * 3, [(padding, padding)] * 3,
                                         dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+
+
+def dense_layers(x: jax.Array, widths, cfg: NetConfig, train: bool, dtype: Any) -> jax.Array:
+    """Dense (no bias) -> BatchNorm -> leaky ReLU for each width, inside the calling module's
+    compact context (the layers are named Dense_i, BatchNorm_i as if written inline)."""
+    for width in widths:
+        x = nn.Dense(width, use_bias=False, dtype=dtype)(x)
+        x = batch_norm(cfg, train, dtype)(x)
+        x = nn.leaky_relu(x, cfg.leaky_slope)
+    return x
+
+
+class Net(nn.Module):
+    """A Fit2Form network: sized by ``config`` (NetConfig), computing in ``dtype`` (float32;
+    bfloat16 on accelerators) while its parameters stay float32."""
+
+    config: NetConfig
+    dtype: Any = jnp.float32
 
 
 class VolumeConv(nn.Module):
@@ -178,7 +196,7 @@ def valid_transpose_sizes(size: int, strides: tuple[int, ...], kernel: int = 3) 
     return sizes
 
 
-class ShapeEncoder(nn.Module):
+class ShapeEncoder(Net):
     """TSDF volume -> Gaussian posterior over the shape latent.
 
     Attributes
@@ -186,9 +204,6 @@ class ShapeEncoder(nn.Module):
     config: NetConfig (latent_dim, encoder_channels, encoder_strides, encoder_logvar_init, ...).
     dtype: computation dtype (float32; bfloat16 on accelerators); parameters stay float32.
     """
-
-    config: NetConfig
-    dtype: Any = jnp.float32
 
     @nn.compact
     def __call__(self, tsdf: jax.Array, *, train: bool) -> tuple[jax.Array, jax.Array]:
@@ -216,7 +231,7 @@ class ShapeEncoder(nn.Module):
         for channels, stride in zip(cfg.encoder_channels, cfg.encoder_strides):
             # no conv bias: the BatchNorm after it has its own shift
             x = VolumeConv(channels, 3, stride, dtype=self.dtype)(x)
-            x = _bn(cfg, train, self.dtype)(x)
+            x = batch_norm(cfg, train, self.dtype)(x)
             x = nn.leaky_relu(x, cfg.leaky_slope)
         x = x.reshape(x.shape[0], -1)
         mu = jnp.tanh(nn.Dense(cfg.latent_dim, dtype=self.dtype, name="mu_head")(x))
@@ -225,7 +240,7 @@ class ShapeEncoder(nn.Module):
         return mu.astype(jnp.float32), logvar.astype(jnp.float32)
 
 
-class ShapeDecoder(nn.Module):
+class ShapeDecoder(Net):
     """Shape latent -> TSDF volume in [-1, 1].
 
     Attributes
@@ -234,9 +249,6 @@ class ShapeDecoder(nn.Module):
         decoder_strides, ...).
     dtype: computation dtype; parameters stay float32.
     """
-
-    config: NetConfig
-    dtype: Any = jnp.float32
 
     def output_sizes(self) -> list[int]:
         """Edge length of the volume after each transposed convolution (last one must be 40)."""
@@ -275,17 +287,13 @@ class ShapeDecoder(nn.Module):
             raise ValueError(f"decoder layers grow {seed}^3 to {self.output_sizes()}, not to "
                              f"{RESOLUTION}^3")
 
-        x = latent.astype(self.dtype)
-        for width in cfg.decoder_fc:
-            x = nn.Dense(width, use_bias=False, dtype=self.dtype)(x)
-            x = _bn(cfg, train, self.dtype)(x)
-            x = nn.leaky_relu(x, cfg.leaky_slope)
+        x = dense_layers(latent.astype(self.dtype), cfg.decoder_fc, cfg, train, self.dtype)
         x = x.reshape(x.shape[0], seed, seed, seed, seed_channels)
         n_layers = len(cfg.decoder_channels)
         for i, (channels, stride) in enumerate(zip(cfg.decoder_channels, cfg.decoder_strides)):
             if i < n_layers - 1:
                 x = VolumeConvTranspose(channels, 3, stride, dtype=self.dtype)(x)
-                x = nn.leaky_relu(_bn(cfg, train, self.dtype)(x), cfg.leaky_slope)
+                x = nn.leaky_relu(batch_norm(cfg, train, self.dtype)(x), cfg.leaky_slope)
             else:
                 # the output layer's own bias sets the TSDF's level (mostly +1, outside); a
                 # BatchNorm here would first force every batch to zero mean and unit spread
@@ -293,15 +301,12 @@ class ShapeDecoder(nn.Module):
         return jnp.tanh(x[..., 0]).astype(jnp.float32)
 
 
-class ShapeAutoEncoder(nn.Module):
+class ShapeAutoEncoder(Net):
     """The VAE that pretrains ``ShapeEncoder`` and ``ShapeDecoder``.
 
     Its parameters are ``{"encoder": ..., "decoder": ...}``, the same subtrees (and names) that
     ``FingerGenerator`` uses, so pretrained weights move over unchanged.
     """
-
-    config: NetConfig
-    dtype: Any = jnp.float32
 
     def setup(self):
         self.encoder = ShapeEncoder(self.config, dtype=self.dtype)
