@@ -79,6 +79,21 @@ def _load_models(run_dir: Path):
         return None, str(exc)
 
 
+# The flags that add a measurement of K candidates (or N objects): (flag, metavar, help)
+COUNT_FLAGS = (
+    ("--design-search", "K", "add the rows 'Fit2Form + search (K, verify)' (f2f_jax.design with the "
+                             "generator's K candidates) and 'Design pool (K + imprints, verify)' (the "
+                             "same plus the imprint pair and its variants: design()'s default)"),
+    ("--fitness-ranking", "K", "also measure how well the fitness net ranks K candidate designs per "
+                               "object (all simulated): within-object Spearman, its pick vs the best"),
+    ("--neighbourhood", "K", "simulate K candidates per object (own design + K-1 latent perturbations) "
+                             "of the run and of every --extra; print each one's trials passed and the "
+                             "run's paired gain over each --extra with a 95%% bootstrap interval"),
+    ("--fresh", "N", "with --run-dir: add N new built-in objects (drawn with --seed, which must "
+                     "differ from the run's) to its held-out ones"),
+)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run-dir", default=None, help="a co-training run directory (objects + checkpoints)")
@@ -90,20 +105,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output directory (default RUN_DIR/eval, or runs/eval)")
     p.add_argument("--config", default=None,
                    help="tiny | default | paper: the simulator settings (default: the run's, else default)")
-    p.add_argument("--design-search", type=int, default=None, metavar="K",
-                   help="add the rows 'Fit2Form + search (K, verify)' (f2f_jax.design with the "
-                        "generator's K candidates) and 'Design pool (K + imprints, verify)' (the "
-                        "same plus the imprint pair and its variants: design()'s default)")
-    p.add_argument("--fitness-ranking", type=int, default=None, metavar="K",
-                   help="also measure how well the fitness net ranks K candidate designs per "
-                        "object (all simulated): within-object Spearman, its pick vs the best")
-    p.add_argument("--neighbourhood", type=int, default=None, metavar="K",
-                   help="simulate K candidates per object (own design + K-1 latent perturbations) "
-                        "of the run and of every --extra; print each one's trials passed and the "
-                        "run's paired gain over each --extra with a 95%% bootstrap interval")
-    p.add_argument("--fresh", type=int, default=None, metavar="N",
-                   help="with --run-dir: add N new built-in objects (drawn with --seed, which must "
-                        "differ from the run's) to its held-out ones")
+    for flag, metavar, text in COUNT_FLAGS:
+        p.add_argument(flag, type=int, default=None, metavar=metavar, help=text)
     p.add_argument("--backend", choices=list(config.BACKENDS), default="mujoco")
     p.add_argument("--sim-preset", default=None, choices=sorted(config.SIM_PRESETS),
                    help="simulation preset (config.SIM_PRESETS; default: the run's config's)")

@@ -8,7 +8,6 @@ from dataclasses import dataclass
 
 from f2f_jax.config import Config
 
-
 TABLE1_COLUMNS: tuple[str, ...] = (
     "grasp", "S1", "S2", "S3", "S4", "S avg", "R-30", "R-20", "R-10", "R+10", "R+20", "R+30", "R avg",
 )

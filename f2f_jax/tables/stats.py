@@ -14,7 +14,6 @@ from f2f_jax.nets.inference import LATENT_NOISE, predict, propose
 from f2f_jax.tables.designers import objects_array
 
 
-
 def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, float]:
     """How well predicted success ranks several candidate designs of the same objects.
 

@@ -27,17 +27,8 @@ from f2f_jax.config import TRIAL_NAMES, Config
 from f2f_jax.errors import DecompositionError, VolumeError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry.pieces import object_pieces as make_hulls
+from f2f_jax.tables import paper as figures  # the paper's numbers; `paper` is a Table field
 from f2f_jax.tables.designers import Design, Designer, make_designs, objects_array
-from f2f_jax.tables.paper import (
-    PAPER_OBJECTS,
-    PAPER_TABLE1,
-    PAPER_TABLE2,
-    ROBUSTNESS,
-    STABILITY,
-    TABLE1_COLUMNS,
-    TABLE2_CONDITIONS,
-    Condition,
-)
 
 log = logging.getLogger(__name__)
 
@@ -73,7 +64,7 @@ class Table:
     # -- writers ------------------------------------------------------------------------------
     def _headers(self) -> list[str]:
         if self.kind == "table1":
-            return ["Grasp", *STABILITY, "S avg", *(f"{c[1:]}°" for c in ROBUSTNESS), "R avg"]
+            return ["Grasp", *figures.STABILITY, "S avg", *(f"{c[1:]}°" for c in figures.ROBUSTNESS), "R avg"]
         return list(self.columns)
 
     def to_markdown(self) -> str:
@@ -95,7 +86,7 @@ class Table:
             if name in self.paper:
                 paper = [f"{self.paper[name][c]:.1f}" for c in self.columns]
                 feas = "100%" if name == "Fit2Form" else "–"  # the appendix states it for Fit2Form
-                lines.append("| | paper | " + " | ".join(paper) + f" | {feas} | {PAPER_OBJECTS} |")
+                lines.append("| | paper | " + " | ".join(paper) + f" | {feas} | {figures.PAPER_OBJECTS} |")
             else:
                 lines.append("| | paper | not in paper | " + " | ".join(dash + ["–", "–"]) + " |")
         lines.append("")
@@ -117,7 +108,7 @@ class Table:
                         row["objects"] = str(self.n_objects)
                     else:
                         row["feasible"] = "1.0000" if name == "Fit2Form" else ""
-                        row["objects"] = str(PAPER_OBJECTS)
+                        row["objects"] = str(figures.PAPER_OBJECTS)
                 else:
                     row["status"] = "not run" if source == "ours" else "not in paper"
                     row.update({c: "" for c in self.columns})
@@ -195,11 +186,11 @@ def table1_values(outcomes: np.ndarray) -> dict[str, float]:
     if out.ndim != 2 or out.shape[1] != len(TRIAL_NAMES) or len(out) == 0:
         raise ValueError(f"outcomes: expected [N >= 1, {len(TRIAL_NAMES)}], got {out.shape}")
     rate = dict(zip(TRIAL_NAMES, 100.0 * out.mean(0)))
-    values = {c: rate[c] for c in ("grasp", *STABILITY)}
-    values["S avg"] = float(np.mean([rate[c] for c in STABILITY]))
-    values.update({c: rate[c] for c in ROBUSTNESS})
-    values["R avg"] = float(np.mean([rate[c] for c in ROBUSTNESS]))
-    return {c: float(values[c]) for c in TABLE1_COLUMNS}
+    values = {c: rate[c] for c in ("grasp", *figures.STABILITY)}
+    values["S avg"] = float(np.mean([rate[c] for c in figures.STABILITY]))
+    values.update({c: rate[c] for c in figures.ROBUSTNESS})
+    values["R avg"] = float(np.mean([rate[c] for c in figures.ROBUSTNESS]))
+    return {c: float(values[c]) for c in figures.TABLE1_COLUMNS}
 
 
 def prepare_objects(objects, cfg: Config, *, object_hulls=None, cache_dir=None,
@@ -285,14 +276,14 @@ def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     if failed:
         notes.append(f"{failed} candidate(s) could not be simulated (model build errors): scored 0")
     notes.append(_counting_note())
-    return Table(kind="table1", columns=TABLE1_COLUMNS,
+    return Table(kind="table1", columns=figures.TABLE1_COLUMNS,
                  values={k: table1_values(v) for k, v in outcomes.items()}, feasible=feasible,
-                 outcomes=outcomes, n_objects=len(objs), paper=PAPER_TABLE1,
+                 outcomes=outcomes, n_objects=len(objs), paper=figures.PAPER_TABLE1,
                  design_seconds={k: d.seconds for k, d in designs.items()}, sim_seconds=seconds,
                  notes=notes)
 
 
-def position_offsets(n: int, condition: Condition, seed: int = 0) -> np.ndarray | None:
+def position_offsets(n: int, condition: figures.Condition, seed: int = 0) -> np.ndarray | None:
     """[n, 2] object shifts (m) for a condition that moves the object, else None.
 
     Each axis: sign * uniform(lo, hi), the sign +-1 with equal odds, drawn from
@@ -310,7 +301,7 @@ def position_offsets(n: int, condition: Condition, seed: int = 0) -> np.ndarray 
 
 
 def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | None = None, *,
-           conditions: Sequence[Condition] = TABLE2_CONDITIONS, backend: str = "mujoco",
+           conditions: Sequence[figures.Condition] = figures.TABLE2_CONDITIONS, backend: str = "mujoco",
            progress: bool = True, object_hulls=None, cache_dir=None, seed: int = 0,
            executor: str = "threads") -> Table:
     """The paper's Table 2 (appendix): grasp success (percent) of each designer under perturbed
@@ -354,7 +345,7 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     notes.append("Friction is the finger-object coefficient (the paper changes the object's "
                  "lateral friction); shifts are drawn once per object, the same for every designer.")
     return Table(kind="table2", columns=tuple(c.name for c in conditions), values=values,
-                 feasible=feasible, outcomes=outcomes, n_objects=len(objs), paper=PAPER_TABLE2,
+                 feasible=feasible, outcomes=outcomes, n_objects=len(objs), paper=figures.PAPER_TABLE2,
                  design_seconds={k: d.seconds for k, d in designs.items()}, sim_seconds=seconds,
                  notes=notes)
 
