@@ -10,7 +10,7 @@ host post-processing (largest component and feasibility of every finger, numpy) 
 net (``predict``).  No simulation: ``verify=True`` adds ``sim.evaluate`` of the feasible
 candidates (see ``benchmarks/sim_throughput.py``).
 
-Models: the newest checkpoint of ``--run-dir`` when its nets have the requested config's sizes,
+TrainedNets: the newest checkpoint of ``--run-dir`` when its nets have the requested config's sizes,
 else randomly initialised nets of that config (latency does not depend on the weights; the
 output says which).  A batch whose estimated time (warm single-object time x B) exceeds
 ``--budget-s``, or whose candidate volumes would not fit in the free host memory, is skipped
@@ -44,21 +44,21 @@ def _available_bytes() -> int | None:
 def _models(config_name: str, run_dir):
     from f2f_jax import config
     from f2f_jax.errors import CheckpointError
-    from f2f_jax.train.state import init_models
+    from f2f_jax.train.state import init_trained_nets
 
     cfg = config.get(config_name)
     try:
-        from f2f_jax.train.checkpoint import load_models
+        from f2f_jax.train.checkpoint import load_trained_nets
 
-        models = load_models(run_dir)
-        if models.config.net == cfg.net:
-            return models, f"checkpoint {models.source}"
+        nets = load_trained_nets(run_dir)
+        if nets.config.net == cfg.net:
+            return nets, f"checkpoint {nets.source}"
         note = f"the checkpoint in {run_dir or 'the default run dir'} has other net sizes"
     except CheckpointError as exc:
         note = f"no checkpoint ({str(exc).split(':')[0]})"
     t = time.perf_counter()
-    models = init_models(cfg)
-    return models, f"random init, {note}; init took {time.perf_counter() - t:.1f} s"
+    nets = init_trained_nets(cfg)
+    return nets, f"random init, {note}; init took {time.perf_counter() - t:.1f} s"
 
 
 def _objects(n_distinct: int):
@@ -97,20 +97,20 @@ class _StepTimer:
         return {s: statistics.median(v) for s, v in self.seconds.items() if v}
 
 
-def _measure(design_module, models, objs, k: int, repeats: int) -> dict:
+def _measure(design_module, nets, objs, k: int, repeats: int) -> dict:
     import jax
 
     key = jax.random.key(0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", design_module.InfeasibleDesignWarning)
         t = time.perf_counter()
-        pairs = design_module.design(objs, params=models, candidates=k, key=key)
+        pairs = design_module.design(objs, params=nets, candidates=k, key=key)
         cold = time.perf_counter() - t
         warm = []
         with _StepTimer(design_module) as timer:
             for _ in range(repeats):
                 t = time.perf_counter()
-                design_module.design(objs, params=models, candidates=k, key=key)
+                design_module.design(objs, params=nets, candidates=k, key=key)
                 warm.append(time.perf_counter() - t)
     n = len(objs) * k
     feasible = np.mean([p.feasible for p in pairs])
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
 
     dev = jax.devices()[0]
     device = f"{dev.platform} ({dev.device_kind}), {jax.device_count()} device(s)"
-    models, source = _models(args.config, args.run_dir)
+    nets, source = _models(args.config, args.run_dir)
     distinct = _objects(min(args.distinct, args.batch))
     batch = distinct[np.arange(args.batch) % len(distinct)]
     print(f"design() latency: config {args.config}, device {device}, jax {jax.__version__}")
@@ -165,7 +165,7 @@ def main(argv=None) -> int:
 
     single = {}
     for k in args.candidates:
-        r = _measure(design_module, models, distinct[:1], k, args.repeats)
+        r = _measure(design_module, nets, distinct[:1], k, args.repeats)
         single[k] = r
         rows.append(r)
         show(r)
@@ -182,7 +182,7 @@ def main(argv=None) -> int:
             print(f"{args.batch:>4} {k:>4}   skipped: {why}")
             rows.append(dict(objects=args.batch, candidates=k, skipped=why, estimated_s=est_s))
             continue
-        r = _measure(design_module, models, batch, k, args.batch_repeats)
+        r = _measure(design_module, nets, batch, k, args.batch_repeats)
         rows.append(r)
         show(r)
 

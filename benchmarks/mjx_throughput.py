@@ -44,7 +44,7 @@ def make_triples(path: Path, n: int, seed: int, cfg) -> None:
     np.savez_compressed(path, **{k: np.stack(v) for k, v in rows.items()})
 
 
-def load_models(path: Path, cfg):
+def load_mujoco_models(path: Path, cfg):
     data = np.load(path)
     models = []
     for v, c, left, right in zip(data["ohv"], data["ohc"], data["left"], data["right"]):
@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     print(f"device: {dev.device_kind} ({dev.platform}) x{jax.local_device_count()}; jax {jax.__version__}; "
           f"config {args.config}", flush=True)
     t = time.perf_counter()
-    models = load_models(args.triples, cfg)
+    models = load_mujoco_models(args.triples, cfg)
     print(f"{len(models)} distinct triples built in {time.perf_counter() - t:.1f} s", flush=True)
     sim = mjx_batch.simulator_for(models[0], cfg)
     t = time.perf_counter()

@@ -73,14 +73,14 @@ def _run_candidates(run_dir: Path, k: int, seed: int, workers):
     from f2f_jax.geometry import postprocess
     from f2f_jax.geometry.hull_pool import object_hulls_many
     from f2f_jax.nets.inference import propose
-    from f2f_jax.train.checkpoint import load_models
+    from f2f_jax.train.checkpoint import load_trained_nets
 
-    models = load_models(run_dir)
-    objs, names = held_out_objects(run_dir, models.config.geometry)
-    lefts, rights = propose(models, objs, seed, k)
-    feasible = postprocess(lefts, rights, models.config.geometry)
-    hulls = object_hulls_many(list(objs), models.config, workers=workers)
-    return models, objs, names, lefts, rights, feasible, hulls
+    nets = load_trained_nets(run_dir)
+    objs, names = held_out_objects(run_dir, nets.config.geometry)
+    lefts, rights = propose(nets, objs, seed, k)
+    feasible = postprocess(lefts, rights, nets.config.geometry)
+    hulls = object_hulls_many(list(objs), nets.config, workers=workers)
+    return nets, objs, names, lefts, rights, feasible, hulls
 
 
 def main(argv=None) -> int:
@@ -106,9 +106,9 @@ def main(argv=None) -> int:
 
     t = time.perf_counter()
     if args.run_dir is not None:
-        models, objs, names, lefts, rights, feasible, hulls = _run_candidates(
+        nets, objs, names, lefts, rights, feasible, hulls = _run_candidates(
             args.run_dir, args.candidates, args.seed, args.workers)
-        cfg = models.config
+        cfg = nets.config
         n, k = feasible.shape
         ib, ik = np.nonzero(feasible)
         o, lft, rgt = objs[ib], lefts[ib, ik], rights[ib, ik]

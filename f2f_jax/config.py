@@ -348,7 +348,8 @@ def override(cfg: Config, assignments) -> Config:
         if not sep or not dot or not name:
             raise ValueError(f"--set {text!r}: expected SECTION.FIELD=VALUE, e.g. train.generator_lr=3e-4")
         if section not in SECTIONS:
-            raise ValueError(f"--set {key}: no config section {section!r}; choose one of {', '.join(SECTIONS)}")
+            raise ValueError(f"--set {key}: no config section {section!r}; choose one of "
+                             f"{', '.join(SECTIONS)}")
         part = getattr(cfg, section)
         fields = {f.name: f for f in dataclasses.fields(part)}
         if name not in fields:

@@ -8,8 +8,8 @@ How a design is chosen, per object:
 
 1. The generator maps the object to two finger latents; candidate 0 decodes them as they are, the
    other ``candidates - 1`` add Gaussian noise (standard deviation ``noise``, default
-   ``nets.inference.LATENT_NOISE`` = 0.2, i.e. 0.1 of the latents' [-1, 1] range, clipped back into it) to each
-   finger latent before the frozen decoder.  All objects and all candidates go through the
+   ``nets.inference.LATENT_NOISE`` = 0.2, i.e. 0.1 of the latents' [-1, 1] range, clipped back
+   into it) to each finger latent before the frozen decoder.  All objects and all candidates go through the
    generator in one jitted call.
 2. Each finger keeps its largest face-connected component and is checked for feasibility
    (``geometry.postprocess``), as in co-training.
@@ -25,8 +25,8 @@ How a design is chosen, per object:
    output wins full ties).  When no candidate is feasible the best-predicted one is returned with
    ``feasible=False`` and an ``InfeasibleDesignWarning``.
 
-Inside the jitted calls the candidates run in chunks of ``nets.inference.CHUNK`` (``lax.map``), so memory stays
-bounded for large batches (256 objects x 64 candidates) while the call stays one.
+Inside the jitted calls the candidates run in chunks of ``nets.inference.CHUNK`` (``lax.map``), so
+memory stays bounded for large batches (256 objects x 64 candidates) while the call stays one.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from f2f_jax.config import BACKENDS, TRIAL_NAMES, GeometryConfig
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import check_tsdf, export_finger_stl, imprint_fingers, postprocess
 from f2f_jax.nets import RESOLUTION
-from f2f_jax.nets.inference import LATENT_NOISE, Models, as_key, predict, propose
+from f2f_jax.nets.inference import LATENT_NOISE, TrainedNets, as_key, predict, propose
 
 # The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
 # Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
@@ -65,7 +65,7 @@ class FingerPair:
     feasible: both fingers printable and mountable (``geometry.is_feasible``).
     object: [40, 40, 40] float32, the input object volume.
     candidate: which of the ``n_candidates`` it was (0: the generator's own output);
-    n_feasible: how many candidates were feasible; source: the models' checkpoint.
+    n_feasible: how many candidates were feasible; source: the nets' checkpoint.
     origin: where the candidate came from: "generator" (its own output), "generator + latent
         noise", or one of the ``IMPRINT_VARIANTS`` ("imprint", ...).
     """
@@ -106,7 +106,7 @@ class FingerPair:
     def render(self, path, *, title: str | None = None, dpi: int = 90) -> Path:
         """PNG of the object held by the two fingers (three views) with the outcome boxes: the
         simulated outcomes when verified, else the predicted probabilities."""
-        from f2f_jax.render import render_grasp
+        from f2f_jax.render import render_grasp  # matplotlib: only when a picture is asked for
 
         if title is None:
             title = self._headline()
@@ -138,7 +138,7 @@ class FingerPair:
     def __str__(self) -> str:
         lines = [f"FingerPair: {self._headline()}"]
         if self.source:
-            lines.append(f"  models: {self.source}")
+            lines.append(f"  nets: {self.source}")
         lines.append(f"  {'outcome':<8}{'predicted':>10}{'simulated':>10}")
         for i, name in enumerate(TRIAL_NAMES):
             sim = "-" if self.simulated is None else str(int(self.simulated[i]))
@@ -150,7 +150,7 @@ class FingerPair:
     __repr__ = __str__
 
 
-def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int = 1,
+def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates: int = 1,
            verify: bool = False, backend: str = "mujoco", run_dir=None,
            noise: float = LATENT_NOISE, progress: bool | None = None, executor: str = "threads",
            imprint: bool | None = None):
@@ -158,8 +158,8 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
 
     obj_tsdf: [40, 40, 40] float32 object TSDF (negative inside) -> FingerPair, or a batch
         [B, 40, 40, 40] -> list of B FingerPairs.
-    params: trained Models; None loads the newest checkpoint of ``run_dir`` (default
-        ``$F2F_RUN_DIR`` or ``runs/cotrain``) with ``train.checkpoint.load_models``.
+    params: trained TrainedNets; None loads the newest checkpoint of ``run_dir`` (default
+        ``$F2F_RUN_DIR`` or ``runs/cotrain``) with ``train.checkpoint.load_trained_nets``.
     key: jax PRNG key (or an int seed) for the latent noise of candidates 1..K-1; default key(0).
     candidates: K >= 1 designs sampled per object (see the module docstring for the ranking).
     verify: simulate the feasible candidates (one ``sim.evaluate`` call with ``backend``) and rank
@@ -182,16 +182,16 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
     if not np.isfinite(noise) or noise < 0:
         raise ValueError(f"noise must be a finite standard deviation >= 0, got {noise!r}")
-    models = _load_models(run_dir) if params is None else params
-    if not isinstance(models, Models):
-        raise TypeError(f"params must be f2f_jax.nets.inference.Models (or None to load a "
-                        f"checkpoint), got {type(models).__name__}")
+    nets = _load_trained_nets(run_dir) if params is None else params
+    if not isinstance(nets, TrainedNets):
+        raise TypeError(f"params must be f2f_jax.nets.inference.TrainedNets (or None to load a "
+                        f"checkpoint), got {type(nets).__name__}")
     key = as_key(key)
-    g = models.config.geometry
+    g = nets.config.geometry
     if imprint is None:
         imprint = verify
 
-    lefts, rights = propose(models, objects, key, candidates, noise)
+    lefts, rights = propose(nets, objects, key, candidates, noise)
     origins = [GENERATOR] + [GENERATOR_NOISE] * (candidates - 1)
     if imprint:
         imp_lefts, imp_rights = imprint_candidates(objects, g)
@@ -199,11 +199,11 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
         rights = np.concatenate([rights, imp_rights], axis=1)
         origins += [name for name, _ in IMPRINT_VARIANTS]
     feasible = postprocess(lefts, rights, g)
-    predicted = predict(models, objects, lefts, rights)
+    predicted = predict(nets, objects, lefts, rights)
     if not np.all(np.isfinite(predicted)):
-        raise F2FError(f"the fitness net of {models.source or 'these models'} predicted NaN/inf; "
+        raise F2FError(f"the fitness net of {nets.source or 'these nets'} predicted NaN/inf; "
                        "the checkpoint is broken")
-    simulated = (simulate_candidates(models, objects, lefts, rights, feasible, backend, progress,
+    simulated = (simulate_candidates(nets, objects, lefts, rights, feasible, backend, progress,
                            executor=executor) if verify else None)
     best = rank_candidates(feasible, predicted, simulated)[:, 0]
 
@@ -221,7 +221,7 @@ def design(obj_tsdf, *, params: Models | None = None, key=None, candidates: int 
             predicted=predicted[b, k].astype(np.float32),
             simulated=None if simulated is None else simulated[b, k].copy(),
             feasible=bool(feasible[b, k]), object=objects[b].copy(), candidate=int(k),
-            n_candidates=len(origins), n_feasible=int(feasible[b].sum()), source=models.source,
+            n_candidates=len(origins), n_feasible=int(feasible[b].sum()), source=nets.source,
             geometry=g, origin=origins[k]))
     return pairs[0] if single else pairs
 
@@ -266,11 +266,11 @@ def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
 # helpers
 
 
-def _load_models(run_dir) -> Models:
-    """Models of the newest checkpoint (lazy import: design with params= never touches orbax)."""
-    from f2f_jax.train.checkpoint import load_models
+def _load_trained_nets(run_dir) -> TrainedNets:
+    """TrainedNets of the newest checkpoint (lazy import: design with params= never touches orbax)."""
+    from f2f_jax.train.checkpoint import load_trained_nets  # orbax: not for design(params=...)
 
-    return load_models(run_dir)
+    return load_trained_nets(run_dir)
 
 
 def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
@@ -291,7 +291,7 @@ def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
                       f"got shape {arr.shape}")
 
 
-def simulate_candidates(models, objects, lefts, rights, feasible, backend, progress=None,
+def simulate_candidates(nets, objects, lefts, rights, feasible, backend, progress=None,
                         object_hulls=None, executor: str = "threads") -> np.ndarray:
     """Simulated outcomes [B, K, 11] uint8: the feasible candidates in one evaluate call, zeros
     for the rest (an infeasible finger scores all 0 by the protocol).  object_hulls: optional
@@ -304,7 +304,7 @@ def simulate_candidates(models, objects, lefts, rights, feasible, backend, progr
     if len(ib):
         hulls = None if object_hulls is None else [object_hulls[i] for i in ib]
         out[ib, ik] = evaluate(objects[ib], lefts[ib, ik], rights[ib, ik], backend=backend,
-                               cfg=models.config, progress=progress, object_hulls=hulls,
+                               cfg=nets.config, progress=progress, object_hulls=hulls,
                                executor=executor)
     return out
 

@@ -26,14 +26,14 @@ from f2f_jax.geometry import (
     mesh_to_tsdf,
     wsg50_fingers,
 )
-from f2f_jax.train.state import init_models
+from f2f_jax.train.state import init_trained_nets
 
 R = 40
 
 
 @pytest.fixture(scope="module")
 def models():
-    return init_models(config.get("tiny"))
+    return init_trained_nets(config.get("tiny"))
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +94,9 @@ def test_design_sphere_single(models, sphere_tsdf):
     assert pair.left.shape == pair.right.shape == (R, R, R)
     assert pair.left.dtype == pair.right.dtype == np.float32
     assert pair.predicted.shape == (11,) and pair.predicted.dtype == np.float32
-    assert np.all((pair.predicted >= 0) & (pair.predicted <= 1))
+    # the fitness net's probabilities of the pair it returned (candidate 0: no noise, no ranking)
+    np.testing.assert_allclose(pair.predicted, np.asarray(models.predict(sphere_tsdf[None], pair.left[None],
+                                                                        pair.right[None]))[0], atol=1e-5)
     assert pair.simulated is None
     assert pair.feasible == (is_feasible(pair.left) and is_feasible(pair.right))
     np.testing.assert_array_equal(pair.object, sphere_tsdf)
@@ -239,7 +241,7 @@ def sphere_stl(tmp_path, sphere_mesh):
 def test_cli_writes_four_files(models, sphere_stl, tmp_path, monkeypatch, capsys):
     """The one simulating test: --verify (the default) on two constructed candidates."""
     monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path / "cache"))
-    monkeypatch.setattr("f2f_jax.cli.design._load_models", lambda run_dir: models)
+    monkeypatch.setattr("f2f_jax.cli.design._load_trained_nets", lambda run_dir: models)
 
     def propose(m, objects, key, candidates, noise=0.0):
         # candidate 0: the imprint pair of the object (holds a sphere); 1: flat fingertips

@@ -181,10 +181,10 @@ def test_network_designers_post_process_like_training(objects, tiny):
     import jax
 
     from f2f_jax.geometry.fingers import feasibility_report
-    from f2f_jax.train.state import init_models
+    from f2f_jax.train.state import init_trained_nets
 
-    models = init_models(tiny, seed=0)
-    lefts, rights = E.models_designer(models, batch=2)(objects[:2])
+    models = init_trained_nets(tiny, seed=0)
+    lefts, rights = E.nets_designer(models, batch=2)(objects[:2])
     assert lefts.shape == rights.shape == (2, 40, 40, 40) and lefts.dtype == np.float32
     for f in (*lefts, *rights):
         assert feasibility_report(f, tiny)["components"] <= 1
@@ -258,9 +258,9 @@ def test_paired_gain_sees_a_real_gain_and_no_gain_where_there_is_none():
 
 
 def test_fitness_ranking_simulates_every_candidate_of_a_run(objects, hulls, tiny):
-    from f2f_jax.train.state import init_models
+    from f2f_jax.train.state import init_trained_nets
 
-    models = init_models(tiny, seed=0)
+    models = init_trained_nets(tiny, seed=0)
     r = E.fitness_ranking(models, objects[:2], tiny, candidates=2, object_hulls=hulls[:2],
                           progress=False)
     assert (r["objects"], r["candidates"]) == (2, 2)

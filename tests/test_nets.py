@@ -217,7 +217,6 @@ def test_autoencoder_jit_train_and_eval(tiny_net, volumes, ae_variables):
     assert a.shape == recon.shape == (2, R, R, R)
     assert mu.shape == logvar.shape == (2, lat)
     assert float(jnp.max(jnp.abs(mu))) < 1.0  # tanh: the paper's [-1, 1] latent
-    assert float(jnp.max(jnp.abs(recon))) <= 1.0
     assert bool(jnp.all(a == a2)) and bool(jnp.any(a != b))  # the key alone decides the sample
     np.testing.assert_allclose(recon, direct, atol=1e-6)  # evaluation decodes the mean
     assert _changed(upd["batch_stats"], ae_variables["batch_stats"])

@@ -59,10 +59,10 @@ def _design_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _load_models(run_dir):
-    from f2f_jax.train.checkpoint import load_models  # orbax: loaded only once the flags are good
+def _load_trained_nets(run_dir):
+    from f2f_jax.train.checkpoint import load_trained_nets  # orbax: loaded only once the flags are good
 
-    return load_models(run_dir)
+    return load_trained_nets(run_dir)
 
 
 def _fail(message: str) -> int:
@@ -104,7 +104,7 @@ def _run_design(args) -> int:
     from f2f_jax.sim.ray_executor import executor_from_cli
 
     mesh = load_mesh(args.mesh)
-    models = _load_models(args.run_dir)
+    nets = _load_trained_nets(args.run_dir)
 
     import jax
 
@@ -112,12 +112,12 @@ def _run_design(args) -> int:
     from f2f_jax.config import TRIAL_NAMES
     from f2f_jax.geometry import mesh_to_tsdf
 
-    obj = mesh_to_tsdf(mesh, models.config.geometry, name=str(args.mesh))
+    obj = mesh_to_tsdf(mesh, nets.config.geometry, name=str(args.mesh))
     executor = executor_from_cli(args) if args.verify else "threads"
     with warnings.catch_warnings():
         # the one-line error below says it; the warning would repeat it
         warnings.simplefilter("ignore", design_module.InfeasibleDesignWarning)
-        pair = design_module.design(obj, params=models, key=jax.random.key(args.seed),
+        pair = design_module.design(obj, params=nets, key=jax.random.key(args.seed),
                                     candidates=args.candidates, verify=args.verify,
                                     backend=args.backend, imprint=args.imprint,
                                     executor=executor)
@@ -135,7 +135,7 @@ def _run_design(args) -> int:
         pair.render(tmp / "design.png", title=f"{Path(args.mesh).name}: {pair._headline()}")
         scores = pair.scores()
         scores.pop("source")  # recorded as "checkpoint"
-        scores = dict(input=str(Path(args.mesh).resolve()), checkpoint=models.source,
+        scores = dict(input=str(Path(args.mesh).resolve()), checkpoint=nets.source,
                       trial_names=list(TRIAL_NAMES), verified=bool(args.verify),
                       backend=args.backend if args.verify else None, seed=args.seed,
                       units="stl in millimetres, mount plate at z <= 0", **scores)

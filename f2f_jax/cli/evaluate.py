@@ -45,7 +45,7 @@ from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import mesh_to_tsdf
 from f2f_jax.sim import ray_executor
-from f2f_jax.train.checkpoint import config_from_dict, load_models
+from f2f_jax.train.checkpoint import config_from_dict, load_trained_nets
 
 
 def _fail(msg: str) -> int:
@@ -71,10 +71,10 @@ def _builtin_objects(n: int, seed: int, cfg):
     return np.stack(tsdfs), [m.metadata.get("name", f"object{i}") for i, m in enumerate(meshes)]
 
 
-def _load_models(run_dir: Path):
-    """(Models, None) or (None, why not)."""
+def _load_trained_nets(run_dir: Path):
+    """(TrainedNets, None) or (None, why not)."""
     try:
-        return load_models(run_dir), None
+        return load_trained_nets(run_dir), None
     except (F2FError, FileNotFoundError) as exc:
         return None, str(exc)
 
@@ -182,7 +182,7 @@ def _objects(args, run_dir: Path | None, cfg):
 
 
 class _Rows:
-    """The designers of Table 1, the rows of Table 2, notes under the tables, and the models that
+    """The designers of Table 1, the rows of Table 2, notes under the tables, and the nets that
     --fitness-ranking and --neighbourhood measure."""
 
     def __init__(self):
@@ -206,10 +206,10 @@ def _baseline_rows(rows: _Rows, cfg) -> None:
     rows.table2.append("Imprint")
 
 
-def _search_rows(rows: _Rows, models, args) -> None:
+def _search_rows(rows: _Rows, nets, args) -> None:
     """--design-search K: f2f_jax.design on the generator's K candidates, then with the imprints."""
     k = args.design_search
-    search = functools.partial(design, params=models, candidates=k, verify=True,
+    search = functools.partial(design, params=nets, candidates=k, verify=True,
                                backend=args.backend, executor=args.executor,
                                progress=False if args.quiet else None)
     name = f"Fit2Form + search ({k}, verify)"  # the generator's candidates only
@@ -229,38 +229,38 @@ def _search_rows(rows: _Rows, models, args) -> None:
 
 def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
     """The run's checkpoint (Fit2Form, RandEmb+FN, search rows) and every --extra's."""
-    models = None
+    nets = None
     if run_dir is not None:
-        models, why = _load_models(run_dir)
-        if models is None:
+        nets, why = _load_trained_nets(run_dir)
+        if nets is None:
             _say(f"no usable checkpoint in {run_dir} ({why}): running the baseline rows only")
-    if models is not None:
-        row = E.OBJECTIVE_ROWS.get(models.objectives, f"Fit2Form ({models.objectives})")
-        _say(f"{row}: {models.source}")
+    if nets is not None:
+        row = E.OBJECTIVE_ROWS.get(nets.objectives, f"Fit2Form ({nets.objectives})")
+        _say(f"{row}: {nets.source}")
         if not args.no_randemb:
             rows.designers["RandEmb+FN"] = E.random_embedding_designer(
-                models, jax.random.key(args.seed), samples=args.randemb_samples,
+                nets, jax.random.key(args.seed), samples=args.randemb_samples,
                 steps=args.randemb_steps)
-        rows.designers[row] = E.models_designer(models)
+        rows.designers[row] = E.nets_designer(nets)
         rows.table2.append(row)
         if args.design_search:
-            _search_rows(rows, models, args)
-        rows.ranked = models if args.fitness_ranking else None
+            _search_rows(rows, nets, args)
+        rows.ranked = nets if args.fitness_ranking else None
         if args.neighbourhood:
-            rows.generators[row] = models
+            rows.generators[row] = nets
     for flag, value in (("--design-search", args.design_search),
                         ("--fitness-ranking", args.fitness_ranking),
                         ("--neighbourhood", args.neighbourhood)):
-        if value and models is None:
+        if value and nets is None:
             _say(f"{flag} needs --run-dir with a checkpoint: skipped")
     for name, path in extras:
-        models_x, why = _load_models(path)
-        if models_x is None:
+        nets_x, why = _load_trained_nets(path)
+        if nets_x is None:
             _say(f"--extra {name}: no usable checkpoint in {path} ({why}): row skipped")
             continue
-        rows.designers[name] = E.models_designer(models_x)
+        rows.designers[name] = E.nets_designer(nets_x)
         if rows.generators:
-            rows.generators[name] = models_x
+            rows.generators[name] = nets_x
 
 
 def _table_results(args, designs, rows: _Rows, objs, hulls, cfg, notes, tables,
@@ -290,9 +290,9 @@ def _table_results(args, designs, rows: _Rows, objs, hulls, cfg, notes, tables,
     return results, printed
 
 
-def _fitness_ranking(args, models, objs, hulls, cfg) -> tuple[dict, str]:
+def _fitness_ranking(args, nets, objs, hulls, cfg) -> tuple[dict, str]:
     _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
-    rk = E.fitness_ranking(models, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
+    rk = E.fitness_ranking(nets, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
                            backend=args.backend, object_hulls=hulls, progress=not args.quiet,
                            executor=args.executor)
     text = (f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "

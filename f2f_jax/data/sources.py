@@ -18,6 +18,7 @@ import trimesh
 
 from f2f_jax.data.objects import builtin_objects
 from f2f_jax.errors import MeshError, MissingExtraError
+from f2f_jax.geometry.fingers import finger_from_mesh
 
 log = logging.getLogger(__name__)
 
@@ -143,8 +144,6 @@ def wsg_fmf_fingers(cfg=None) -> tuple[np.ndarray, np.ndarray]:
     """The paper's WSG50 baseline: the standard WSG-FMF fingers as (left, right) finger volumes
     (``geometry.finger_from_mesh``: face toward the object, tip down, faces meeting at the
     object's mid-plane at full closure).  Raises MissingExtraError without the pybullet extra."""
-    from f2f_jax.geometry.fingers import finger_from_mesh
-
     finger = finger_from_mesh(wsg_fmf_mesh(), cfg)
     return finger, finger.copy()
 

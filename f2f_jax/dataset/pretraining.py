@@ -6,8 +6,10 @@ from __future__ import annotations
 import numpy as np
 from tqdm.auto import tqdm
 
+from f2f_jax import sim
 from f2f_jax.config import Config, default
 from f2f_jax.geometry import finger_from_shape, imprint_fingers, wsg50_fingers
+from f2f_jax.sim import ray_executor
 
 KINDS = ("imprint", "wsg50", "cut")
 
@@ -51,14 +53,10 @@ def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config |
     driver only).
     Returns counts and grasp success per kind for what this call simulated.
     """
-    from f2f_jax import sim  # the data layer only needs the simulator here
-
     cfg = cfg or default()
     if batch_objects is None:
         batch_objects = 8
         if executor == "ray":
-            from f2f_jax.sim import ray_executor
-
             batch_objects = max(8, 2 * ray_executor.cluster_cpus(ray_executor.connect()))
     if batch_objects < 1:
         raise ValueError(f"batch_objects must be >= 1, got {batch_objects}")

@@ -1,13 +1,13 @@
 """Inference with trained nets: what design, co-training and the tables all run.
 
-``Models`` holds a run's generator and fitness net with the config that sized them; ``propose``
+``TrainedNets`` holds a run's generator and fitness net with the config that sized them; ``propose``
 decodes a batch of objects into K candidate finger pairs each (candidate 0 the generator's own
 output, the rest with latent noise), ``predict`` scores candidates with the fitness net.  Both are
 one jitted call over the whole batch, chunked inside by ``lax.map`` (``CHUNK`` rows at a time) so
 memory stays bounded for large batches.
 
 This module sits above the network definitions and below training and design: ``train`` fills
-``Models`` from checkpoints, ``designer`` and ``tables`` run them.
+``TrainedNets`` from checkpoints, ``designer`` and ``tables`` run them.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ CHUNK = 256
 
 
 @dataclasses.dataclass(frozen=True)
-class Models:
+class TrainedNets:
     """What a run trained, ready for ``f2f_jax.design`` and evaluation.
 
     config: the Config that sized the nets.
@@ -73,22 +73,22 @@ def predict_triples(net_cfg: NetConfig, variables, objects, lefts, rights):
     return jax.nn.sigmoid(logits)
 
 
-def propose(models: Models, objects: np.ndarray, key, candidates: int,
+def propose(nets: TrainedNets, objects: np.ndarray, key, candidates: int,
             noise: float = LATENT_NOISE) -> tuple[np.ndarray, np.ndarray]:
     """Raw generated candidates, before post-processing.
 
     objects: [B, 40, 40, 40] float32.  Returns lefts, rights: [B, K, 40, 40, 40] float32 host
     arrays (writable); candidate 0 is the generator's own output.
     """
-    lefts, rights = _propose_jit(models.config.net, models.generator, jnp.asarray(objects),
+    lefts, rights = _propose_jit(nets.config.net, nets.generator, jnp.asarray(objects),
                                  as_key(key), jnp.float32(noise), candidates=int(candidates),
                                  chunk=CHUNK)
     return np.array(lefts), np.array(rights)
 
 
-def predict(models: Models, objects: np.ndarray, lefts: np.ndarray, rights: np.ndarray) -> np.ndarray:
+def predict(nets: TrainedNets, objects: np.ndarray, lefts: np.ndarray, rights: np.ndarray) -> np.ndarray:
     """Fitness-net probabilities of every candidate: [B, K, 11] float32 (one jitted call)."""
-    p = _fitness_jit(models.config.net, models.fitness, jnp.asarray(objects), jnp.asarray(lefts),
+    p = _fitness_jit(nets.config.net, nets.fitness, jnp.asarray(objects), jnp.asarray(lefts),
                      jnp.asarray(rights), chunk=CHUNK)
     return np.asarray(p, np.float32)
 

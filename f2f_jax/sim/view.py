@@ -20,13 +20,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
 from scipy.spatial import ConvexHull  # noqa: E402
 
 from f2f_jax import config as config_mod  # noqa: E402
 from f2f_jax.config import TRIAL_NAMES, Config  # noqa: E402
+from f2f_jax.data.sources import load_mesh  # noqa: E402
 from f2f_jax.fileio import atomic_path  # noqa: E402
+from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, wsg50_fingers  # noqa: E402
+from f2f_jax.geometry.finger_tiling import finger_hulls  # noqa: E402
+from f2f_jax.geometry.pieces import object_pieces  # noqa: E402
 from f2f_jax.sim.protocol import GraspRunner, run_trials  # noqa: E402
+from f2f_jax.sim.scene import build_model  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -188,11 +194,6 @@ def render_trials(model: mujoco.MjModel, cfg: Config, path) -> np.ndarray:
 
 
 def main(argv=None) -> int:
-    from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, wsg50_fingers
-    from f2f_jax.geometry.finger_tiling import finger_hulls
-    from f2f_jax.geometry.pieces import object_pieces
-    from f2f_jax.sim.scene import build_model
-
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--object", default="sphere", help="'sphere', 'box' or a mesh file")
     p.add_argument("--fingers", default="imprint", choices=["imprint", "wsg50"])
@@ -202,16 +203,12 @@ def main(argv=None) -> int:
                    help="collision geometry and early exits (default: fast)")
     p.add_argument("--out", default="grasp.png")
     args = p.parse_args(argv)
-    import trimesh
-
     cfg = config_mod.with_sim_preset(config_mod.get(args.config), args.sim_preset)
     if args.object == "sphere":
         mesh = trimesh.creation.icosphere(subdivisions=3)
     elif args.object == "box":
         mesh = trimesh.creation.box((0.04, 0.03, 0.05))
     else:
-        from f2f_jax.data.sources import load_mesh
-
         mesh = load_mesh(args.object)
     obj = mesh_to_tsdf(mesh)
     left, right = imprint_fingers(obj) if args.fingers == "imprint" else wsg50_fingers()

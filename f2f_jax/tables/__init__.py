@@ -15,7 +15,7 @@ from f2f_jax.tables.designers import (
     Designer,
     imprint_designer,
     make_designs,
-    models_designer,
+    nets_designer,
     objects_array,
     pair_designer,
     random_embedding_designer,
@@ -46,7 +46,7 @@ from f2f_jax.tables.table import Table, position_offsets, prepare_objects, table
 __all__ = [
     "OBJECTIVE_ROWS", "PAPER_OBJECTS", "PAPER_TABLE1", "PAPER_TABLE2", "ROBUSTNESS", "STABILITY",
     "TABLE1_COLUMNS", "TABLE2_COLUMNS", "TABLE2_CONDITIONS", "Condition", "Design", "Designer", "Table",
-    "candidate_outcomes", "fitness_ranking", "imprint_designer", "make_designs", "models_designer",
+    "candidate_outcomes", "fitness_ranking", "imprint_designer", "make_designs", "nets_designer",
     "neighbourhood_stats", "objects_array", "pair_designer", "paired_gain", "position_offsets",
     "prepare_objects", "random_embedding_designer", "ranking_stats", "table1", "table1_values", "table2",
     "wsg50_designer", "wsg_fmf_designer",

@@ -3,7 +3,7 @@
 A **designer** is a callable ``objects [N, 40, 40, 40] float32 -> (lefts, rights)``, two numpy
 arrays ``[N, 40, 40, 40]`` float32 of finger TSDFs in the finger frame of ``f2f_jax.config``.
 This module provides the paper's rows as designers (``wsg_fmf_designer``, the paper's WSG50
-fingers; ``wsg50_designer``, flat pads; ``imprint_designer``, ``models_designer`` for a trained
+fingers; ``wsg50_designer``, flat pads; ``imprint_designer``, ``nets_designer`` for a trained
 generator, ``random_embedding_designer`` for RandEmb+FN) and ``pair_designer`` to turn any
 per-object function (such as ``f2f_jax.design``) into one; ``make_designs`` runs them once.
 """
@@ -83,13 +83,13 @@ def _postprocess(fingers: np.ndarray) -> np.ndarray:
     return np.stack([largest_component(f) for f in np.asarray(fingers, np.float32)])
 
 
-def models_designer(models, *, batch: int = 8) -> Designer:
-    """A trained generator (``nets.inference.Models``): ``Models.generate`` then the largest
+def nets_designer(nets, *, batch: int = 8) -> Designer:
+    """A trained generator (``nets.inference.TrainedNets``): ``TrainedNets.generate`` then the largest
     connected component of each finger, as in training (an infeasible result stays infeasible
     and scores 0).  batch: objects per call (``train.steps.generate_batched``)."""
 
     def design(objects):
-        lefts, rights = generate_batched(models.config.net, models.generator,
+        lefts, rights = generate_batched(nets.config.net, nets.generator,
                                          objects_array(objects), batch)
         return _postprocess(lefts), _postprocess(rights)
 
@@ -129,7 +129,7 @@ def _randemb_optimizer(net, steps: int, lr: float, objective: str):
     return jax.jit(run)
 
 
-def random_embedding_designer(models, key, *, samples: int = 8, steps: int = 200, lr: float = 0.02,
+def random_embedding_designer(nets, key, *, samples: int = 8, steps: int = 200, lr: float = 0.02,
                               objective: str = "grasp") -> Designer:
     """The paper's RandEmb+FN baseline: test-time optimisation of random finger embeddings with
     the shape decoder and the fitness net, without the generator's embedding network.
@@ -145,8 +145,8 @@ def random_embedding_designer(models, key, *, samples: int = 8, steps: int = 200
         raise ValueError(f"objective: 'grasp' or 'mean', got {objective!r}")
     if samples < 1 or steps < 0:
         raise ValueError(f"samples must be >= 1 and steps >= 0, got {samples} and {steps}")
-    run = _randemb_optimizer(models.config.net, int(steps), float(lr), objective)
-    d = models.config.net.latent_dim
+    run = _randemb_optimizer(nets.config.net, int(steps), float(lr), objective)
+    d = nets.config.net.latent_dim
     out_index = 0 if objective == "grasp" else slice(None)
 
     def design(objects):
@@ -155,11 +155,11 @@ def random_embedding_designer(models, key, *, samples: int = 8, steps: int = 200
         for i, obj in enumerate(objs):
             z0 = jax.random.uniform(jax.random.fold_in(key, i), (samples, 2, d), minval=-1.0,
                                     maxval=1.0)
-            _, fingers = run(models.generator, models.fitness, obj, z0)
+            _, fingers = run(nets.generator, nets.fitness, obj, z0)
             # decoded from z.reshape(2S, D): row 2s is sample s's left finger, row 2s + 1 its right
             fingers = _postprocess(np.asarray(fingers)).reshape(samples, 2, *obj.shape)
             left, right = fingers[:, 0], fingers[:, 1]
-            pred = np.asarray(models.predict(np.repeat(obj[None], samples, 0), left, right))
+            pred = np.asarray(nets.predict(np.repeat(obj[None], samples, 0), left, right))
             score = pred[:, out_index] if objective == "grasp" else pred.mean(-1)
             ok = np.array([is_feasible(left[k]) and is_feasible(right[k]) for k in range(samples)])
             best = int(np.argmax(np.where(ok, score, -np.inf))) if ok.any() else int(np.argmax(score))
@@ -183,7 +183,7 @@ def pair_designer(fn: Callable[[np.ndarray], Any], *, batched: bool = False, pro
     object at a time if that call raises F2FError).  A per-object call that raises F2FError
     gives an empty (infeasible, scored 0) pair and a warning.
 
-        search = pair_designer(lambda o: f2f_jax.design(o, params=models, candidates=64,
+        search = pair_designer(lambda o: f2f_jax.design(o, params=nets, candidates=64,
                                                         verify=True), batched=True)
     """
 

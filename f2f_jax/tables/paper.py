@@ -82,7 +82,7 @@ PAPER_TABLE2: dict[str, dict[str, float]] = {name: dict(zip(TABLE2_COLUMNS, valu
     ("Fit2Form", (88.9, 63.9, 51.6, 76.3, 73.0, 86.3, 83.6)),
 )}
 
-# What a checkpoint's ``Models.objectives`` is called in Table 1.
+# What a checkpoint's ``TrainedNets.objectives`` is called in Table 1.
 OBJECTIVE_ROWS = {"full": "Fit2Form", "GS": "Fit2Form GS", "GS+R": "Fit2Form GS + R",
                   "GS+S": "Fit2Form GS + S"}
 

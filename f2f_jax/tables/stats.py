@@ -65,7 +65,7 @@ def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, flo
     }
 
 
-def candidate_outcomes(models, objects, cfg: Config | None = None, *, candidates: int = 8,
+def candidate_outcomes(nets, objects, cfg: Config | None = None, *, candidates: int = 8,
                        noise: float | None = None, key=0, backend: str = "mujoco",
                        object_hulls=None, progress: bool | None = None,
                        executor: str = "threads"):
@@ -79,16 +79,16 @@ def candidate_outcomes(models, objects, cfg: Config | None = None, *, candidates
     """
     if candidates < 1:
         raise ValueError(f"candidates must be >= 1, got {candidates}")
-    cfg = cfg or models.config
+    cfg = cfg or nets.config
     objs = objects_array(objects, cfg.geometry.resolution)
-    lefts, rights = propose(models, objs, key, candidates, LATENT_NOISE if noise is None else noise)
+    lefts, rights = propose(nets, objs, key, candidates, LATENT_NOISE if noise is None else noise)
     feasible = postprocess(lefts, rights, cfg.geometry)
-    simulated = simulate_candidates(dataclasses.replace(models, config=cfg), objs, lefts, rights,
+    simulated = simulate_candidates(dataclasses.replace(nets, config=cfg), objs, lefts, rights,
                                     feasible, backend, progress, object_hulls, executor=executor)
     return lefts, rights, feasible, simulated
 
 
-def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: int = 16,
+def fitness_ranking(nets, objects, cfg: Config | None = None, *, candidates: int = 16,
                     noise: float | None = None, key=0, backend: str = "mujoco",
                     object_hulls=None, progress: bool | None = None,
                     executor: str = "threads") -> dict[str, float]:
@@ -101,12 +101,12 @@ def fitness_ranking(models, objects, cfg: Config | None = None, *, candidates: i
     """
     if candidates < 2:
         raise ValueError(f"candidates must be >= 2 to rank anything, got {candidates}")
-    cfg = cfg or models.config
+    cfg = cfg or nets.config
     objs = objects_array(objects, cfg.geometry.resolution)
     lefts, rights, feasible, simulated = candidate_outcomes(
-        models, objs, cfg, candidates=candidates, noise=noise, key=key, backend=backend,
+        nets, objs, cfg, candidates=candidates, noise=noise, key=key, backend=backend,
         object_hulls=object_hulls, progress=progress, executor=executor)
-    predicted = predict(models, objs, lefts, rights)
+    predicted = predict(nets, objs, lefts, rights)
     n, k = feasible.shape
     out = ranking_stats(predicted, simulated)
     out.update(objects=n, candidates=k, feasible=float(feasible.mean()))

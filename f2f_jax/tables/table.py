@@ -23,7 +23,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from f2f_jax import sim
-from f2f_jax.config import TRIAL_NAMES, Config
+from f2f_jax.config import TRIAL_NAMES, Config, default
 from f2f_jax.errors import DecompositionError, VolumeError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry.pieces import object_pieces as make_hulls
@@ -265,8 +265,6 @@ def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     docstring); infeasible designs score 0 and ``Table.feasible`` gives each row's feasible share.
     object_hulls / cache_dir / executor: as in ``sim.evaluate``; backend: "mujoco", "mjx" or "warp".
     """
-    from f2f_jax.config import default
-
     cfg = cfg or default()
     objs, hulls, notes = prepare_objects(objects, cfg, object_hulls=object_hulls,
                                          cache_dir=cache_dir, progress=progress)
@@ -314,8 +312,6 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     conditions run on "mujoco" (said in the notes).  ``Table.outcomes[name]`` is [C, N, 11];
     ``feasible`` as in ``table1``; executor: as in ``sim.evaluate``.
     """
-    from f2f_jax.config import default
-
     cfg = cfg or default()
     objs, hulls, notes = prepare_objects(objects, cfg, object_hulls=object_hulls,
                                          cache_dir=cache_dir, progress=progress)

@@ -6,7 +6,7 @@ half-written checkpoint under a final name).  Each holds three items:
 
 * ``state``: every stage's ``TrainState`` (params, BatchNorm statistics, optimiser state, step) and
   the run's PRNG key data;
-* ``models``: the generator's and the fitness net's variables alone, for ``load_models``;
+* ``models``: the generator's and the fitness net's variables alone, for ``load_trained_nets``;
 * ``meta``: JSON with the stage, epoch, cycle, store offset, config and a SHA-1 of every array.
 
 Loading walks from the newest checkpoint to the oldest and takes the first one that restores and
@@ -30,7 +30,7 @@ import orbax.checkpoint as ocp
 
 from f2f_jax.config import SIM_PRESETS, Config, GeometryConfig, NetConfig, SimConfig, TrainConfig
 from f2f_jax.errors import CheckpointError
-from f2f_jax.nets.inference import Models
+from f2f_jax.nets.inference import TrainedNets
 
 log = logging.getLogger(__name__)
 
@@ -166,11 +166,11 @@ class Checkpoints:
         return jax.tree.unflatten(jax.tree.structure(fresh), jax.tree.leaves(restored)), meta
 
 
-def load_models(run_dir=None):
+def load_trained_nets(run_dir=None):
     """The generator and fitness net of the newest complete checkpoint of a co-training run.
 
     run_dir: default ``$F2F_RUN_DIR`` or ``runs/cotrain``.
-    Returns ``f2f_jax.nets.inference.Models``.  Raises CheckpointError, naming the command that makes
+    Returns ``f2f_jax.nets.inference.TrainedNets``.  Raises CheckpointError, naming the command that makes
     a checkpoint, when the directory holds none that can be read.
     """
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir()
@@ -183,7 +183,7 @@ def load_models(run_dir=None):
         raise CheckpointError(f"no readable checkpoint in {ckpt_dir}; rerun `{MAKE_ONE} --run-dir "
                               f"{run_dir}`")
     _, models, meta = got
-    return Models(config=config_from_dict(meta["config"]), generator=models["generator"],
+    return TrainedNets(config=config_from_dict(meta["config"]), generator=models["generator"],
                   fitness=models["fitness"], objectives=meta.get("objectives", "full"),
                   source=f"{ckpt_dir / str(meta['index'])} (stage {meta.get('stage')}, "
                          f"cycle {meta.get('cycle')})")

@@ -410,7 +410,7 @@ class CoTrainRun:
 
     def _keep_pretrained(self) -> None:
         """The models at the end of pretraining, kept apart from the rolling checkpoints: the
-        paper's ImpGN row (``load_models(run_dir / "pretrained")``) and a start for variants."""
+        paper's ImpGN row (``load_trained_nets(run_dir / "pretrained")``) and a start for variants."""
         if self._done("cycle", 0, 1):
             return  # a resumed run already past pretraining: the state is no longer that
         ckpt = Checkpoints(self.dir / "pretrained" / "checkpoints", max_to_keep=1)

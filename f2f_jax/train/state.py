@@ -1,7 +1,7 @@
 """Train state and the trained models as pytrees.
 
 ``TrainState`` is what one jitted step carries (parameters, BatchNorm statistics, optimiser state,
-step count); ``Models`` is what design and evaluation need from a run (the finger generator and the
+step count); ``TrainedNets`` is what design and evaluation need from a run (the finger generator and the
 fitness net, with the config that sized them).
 """
 
@@ -16,7 +16,7 @@ from flax import struct
 
 from f2f_jax.config import Config, TrainConfig
 from f2f_jax.nets import RESOLUTION, FingerGenerator, FitnessNet, ShapeAutoEncoder
-from f2f_jax.nets.inference import Models
+from f2f_jax.nets.inference import TrainedNets
 
 
 @struct.dataclass
@@ -88,9 +88,9 @@ def init_generator(cfg: Config, seed: int = 0) -> dict:
     return _init(FingerGenerator(cfg.net), seed, x)
 
 
-def init_models(cfg: Config, seed: int = 0, objectives: str = "full") -> Models:
+def init_trained_nets(cfg: Config, seed: int = 0, objectives: str = "full") -> TrainedNets:
     """Randomly initialised models (tests, and the RandEmb baseline's starting point)."""
-    return Models(config=cfg, generator=init_generator(cfg, seed), fitness=init_fitness(cfg, seed + 1),
+    return TrainedNets(config=cfg, generator=init_generator(cfg, seed), fitness=init_fitness(cfg, seed + 1),
                   objectives=objectives, source="random init")
 
 
