@@ -21,6 +21,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from f2f_jax.config import Config
 from f2f_jax.errors import DecompositionError
+from f2f_jax.geometry import finger_pose
 from f2f_jax.sim.scene import SceneIds, finger_object_distance
 
 LINE_SPACING = 0.001  # m between the lines of the host's (and warp's) grid: 61 x 61 lines
@@ -33,9 +34,8 @@ _PARALLEL = 1e-12  # |n_x| below this: a facet parallel to the lines
 
 def line_axes(cfg: Config, spacing: float = LINE_SPACING) -> tuple[np.ndarray, np.ndarray]:
     """The grid's y and z coordinates (m, world): the shape cube's footprint at rest height."""
-    g = cfg.geometry
-    h = g.cube_size / 2
-    z0 = g.cube_size / 2 + g.rest_offset  # the cube's centre (and the fingers'), as placed
+    h = cfg.geometry.cube_size / 2
+    z0 = finger_pose("left", 0.0, cfg)[2, 3]  # the fingers' cube centre height, as mounted
     ys = np.arange(-h, h + spacing / 2, spacing)
     zs = np.arange(z0 - h, z0 + h + spacing / 2, spacing)
     return ys, zs
@@ -58,7 +58,7 @@ def x_extent(planes, rot, pos, y, z, xp=np):
     """
     n = planes[:, :3] @ rot.T  # world normals
     d = planes[:, 3] - n @ pos
-    extra = (None,) * xp.ndim(xp.asarray(y + z))
+    extra = (None,) * max(xp.ndim(y), xp.ndim(z))  # the lines' axes, after the facets'
     nx = n[(slice(None), 0, *extra)]
     # n_x x <= c on each line: [F, *lines]
     c = -(d[(slice(None), *extra)] + n[(slice(None), 1, *extra)] * y + n[(slice(None), 2, *extra)] * z)
