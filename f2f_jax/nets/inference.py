@@ -66,11 +66,16 @@ def generate(net_cfg: NetConfig, variables, objects):
     return FingerGenerator(net_cfg).apply(variables, objects, train=False)
 
 
+def _probabilities(net_cfg: NetConfig, variables, objects, lefts, rights) -> jax.Array:
+    """The fitness net in evaluation mode: outcome probabilities [B, 11] of B triples."""
+    logits = FitnessNet(net_cfg).apply(variables, fitness_input(objects, lefts, rights), train=False)
+    return jax.nn.sigmoid(logits)
+
+
 @functools.partial(jax.jit, static_argnums=0)
 def predict_triples(net_cfg: NetConfig, variables, objects, lefts, rights):
     """Fitness probabilities [B, 11] of B (object, left, right) triples, evaluation mode."""
-    logits = FitnessNet(net_cfg).apply(variables, fitness_input(objects, lefts, rights), train=False)
-    return jax.nn.sigmoid(logits)
+    return _probabilities(net_cfg, variables, objects, lefts, rights)
 
 
 def propose(nets: TrainedNets, objects: np.ndarray, key, candidates: int,
@@ -146,12 +151,10 @@ def _fitness_jit(net_cfg: NetConfig, variables, objects, lefts, rights, *, chunk
     b, k = lefts.shape[:2]
     r = RESOLUTION
     owner = jnp.repeat(jnp.arange(b), k)  # candidates share their object's volume, not a copy
-    net = FitnessNet(net_cfg)
 
     def one(args):
         i, left, right = args
-        x = fitness_input(objects[i][None], left[None], right[None])
-        return jax.nn.sigmoid(net.apply(variables, x, train=False))[0]
+        return _probabilities(net_cfg, variables, objects[i][None], left[None], right[None])[0]
 
     p = _chunked_map(one, (owner, lefts.reshape(b * k, r, r, r), rights.reshape(b * k, r, r, r)),
                      chunk)
