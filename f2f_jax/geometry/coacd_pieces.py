@@ -4,11 +4,17 @@ Objects are fixed for a run, so they get a careful decomposition once (``object_
 coacd on the marching-cubes mesh (or the mesh's hull when it is convex), merged down to K
 pieces, free slots spent on cutting the pieces that V vertices fit worst, cached on disk by a
 hash of the volume and the settings.
+
+The pieces of the builtin objects that runs, benchmarks and tests start from (the first 64 of
+seed 0, as made by ``mesh_to_tsdf`` and as an object set stores them, float16) ship with the
+package (``builtin_pieces.npz``, rebuilt by ``python -m f2f_jax.cli.bundle_pieces``): a fresh
+machine reads them under the same keys instead of spending ~10 minutes of coacd on them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -39,6 +45,8 @@ _CONVEX_TEST_VERTICES = 64  # its hull is judged by a 64-vertex inner approximat
 # Free object slots go to pieces whose V-vertex reduction misses more than this.
 _REFINE_TOLERANCE_VOXELS = 0.5
 _MAX_COACD_FACES = 80_000
+# Pieces of the builtin objects, shipped: {cache key: hulls} (module docstring)
+BUNDLE_PATH = Path(__file__).with_name("builtin_pieces.npz")
 
 @dataclass(frozen=True)
 class CoacdSettings:
@@ -259,6 +267,37 @@ def load_cached(path: Path, k: int, v: int) -> Hulls | None:
         return None
 
 
+@functools.lru_cache(maxsize=1)
+def _bundle() -> tuple[dict[str, int], np.ndarray, np.ndarray]:
+    """The shipped pieces: ({cache key: row}, vertices [N, K, V, 3], counts [N, K]); empty when
+    the file is missing (a checkout before it was built) or unreadable."""
+    try:
+        with np.load(BUNDLE_PATH, allow_pickle=False) as data:
+            keys = [str(k) for k in data["keys"]]
+            return {k: i for i, k in enumerate(keys)}, data["vertices"], data["counts"]
+    except FileNotFoundError:
+        return {}, np.zeros((0, 0, 0, 3), np.float32), np.zeros((0, 0), np.int32)
+    except Exception as exc:  # a broken bundle only costs time: coacd makes the pieces
+        warnings.warn(f"shipped object pieces {BUNDLE_PATH} are unusable ({type(exc).__name__}: "
+                      f"{exc}); computing them", RuntimeWarning, stacklevel=2)
+        return {}, np.zeros((0, 0, 0, 3), np.float32), np.zeros((0, 0), np.int32)
+
+
+def bundled_hulls(key: str, k: int, v: int) -> Hulls | None:
+    """The shipped pieces under a cache key (``cache_key``), or None."""
+    rows, vertices, counts = _bundle()
+    i = rows.get(key)
+    if i is None or vertices.shape[1:] != (k, v, 3):
+        return None
+    return Hulls(np.array(vertices[i], np.float32), np.array(counts[i], np.int32))
+
+
+def stored_hulls(path: Path, k: int, v: int) -> Hulls | None:
+    """The hulls cached at ``path`` (``cache_path``), else the shipped ones of its key, else None."""
+    cached = load_cached(path, k, v)
+    return cached if cached is not None else bundled_hulls(path.stem, k, v)
+
+
 def _save_atomic(path: Path, hulls: Hulls) -> None:
     """Write the npz next to its destination, then rename: readers never see half a file."""
     with atomic_path(path) as tmp:
@@ -277,7 +316,7 @@ def cached_object_hulls(obj_tsdf, cfg=None, *, cache_dir=None) -> Hulls | None:
     g = geometry_config(cfg)
     arr = check_tsdf(obj_tsdf, "object", g)
     k, v = g.object_hulls, g.hull_vertices
-    return load_cached(cache_path(arr, g, k, v, CoacdSettings(), cache_dir), k, v)
+    return stored_hulls(cache_path(arr, g, k, v, CoacdSettings(), cache_dir), k, v)
 
 
 def store_object_hulls(obj_tsdf, hulls: Hulls, cfg=None, *, cache_dir=None) -> None:
@@ -301,8 +340,9 @@ def object_hulls(obj_tsdf, cfg=None, *, cache_dir: str | os.PathLike | None | bo
     unless its convex hull reaches at most a voxel into the empty space: then the hull is the
     one piece (coacd would cut a convex shape along the voxel staircase, slowly).
     The result is cached as ``<sha1>.npz`` in cache_dir (default ``default_cache_dir()``; False:
-    no cache, neither read nor written), keyed by the float32 volume bytes, the layout and the
-    settings; writes are atomic and an unreadable file is recomputed.
+    no cache, neither read nor written, nor the shipped pieces used), keyed by the float32 volume
+    bytes, the layout and the settings; writes are atomic and an unreadable file is recomputed.
+    A key missing from the cache is looked up in the shipped pieces of the builtin objects.
     Returns Hulls [max_pieces (cfg.object_hulls), max_vertices, 3].
     Raises VolumeError for an invalid or empty volume, DecompositionError if no piece can be made.
     """
@@ -314,7 +354,7 @@ def object_hulls(obj_tsdf, cfg=None, *, cache_dir: str | os.PathLike | None | bo
     use_cache = cache_dir is not False
     path = cache_path(arr, g, k, v, settings, cache_dir if use_cache else None)
     if use_cache:
-        cached = load_cached(path, k, v)
+        cached = stored_hulls(path, k, v)
         if cached is not None:
             return cached
     start = time.perf_counter()

@@ -28,8 +28,8 @@ from f2f_jax.geometry.coacd_pieces import (
     CoacdSettings,
     cache_path,
     default_cache_dir,
-    load_cached,
     object_hulls,
+    stored_hulls,
 )
 from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.tsdf import check_tsdf
@@ -85,7 +85,7 @@ def object_hulls_many(objects, cfg=None, *, cache_dir=None, workers: int | None 
             made[key] = f"{type(exc).__name__}: {exc}"
             continue
         path = cache_path(arr, g, g.object_hulls, g.hull_vertices, CoacdSettings(), cache_dir)
-        cached = load_cached(path, g.object_hulls, g.hull_vertices)
+        cached = stored_hulls(path, g.object_hulls, g.hull_vertices)
         if cached is not None:
             made[key] = cached
         else:

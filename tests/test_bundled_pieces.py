@@ -1,0 +1,77 @@
+"""The object pieces shipped for the builtin objects: found under the keys that runs, benchmarks
+and tests compute, equal to what coacd makes, and never used where a caller asked for no cache."""
+
+import numpy as np
+import pytest
+
+from f2f_jax.cli.bundle_pieces import builtin_volumes
+from f2f_jax.config import GeometryConfig
+from f2f_jax.geometry import coacd_pieces
+from f2f_jax.geometry.coacd_pieces import CoacdSettings, bundled_hulls, cache_key, object_hulls
+from f2f_jax.geometry.hull_pool import object_hulls_many
+
+G = GeometryConfig()
+K, V = G.object_hulls, G.hull_vertices
+REBUILD = "python -m f2f_jax.cli.bundle_pieces"
+
+
+def _key(vol):
+    return cache_key(vol, G, K, V, CoacdSettings())
+
+
+@pytest.fixture(scope="module")
+def volumes():
+    """Builtin objects 0-3 of seed 0, each raw and float16-rounded (an object set's form)."""
+    return builtin_volumes(4, 0, G)
+
+
+def test_the_builtin_objects_pieces_ship_under_their_keys(volumes):
+    """A change to the families, the TSDF code or the cache key leaves the shipped pieces
+    unreachable: every fresh CI machine and new user would then spend ~10 min of coacd."""
+    missing = [i for i, vol in enumerate(volumes) if bundled_hulls(_key(vol), K, V) is None]
+    assert not missing, f"volumes {missing} have no shipped pieces: rebuild them with `{REBUILD}`"
+    assert len(volumes) == 8  # the float16 rounding changes every volume: both forms ship
+
+
+def test_shipped_pieces_are_read_instead_of_running_coacd(volumes, tmp_path, monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("coacd ran for a shipped object")
+
+    monkeypatch.setattr(coacd_pieces, "decompose_mesh", refuse)
+    for vol in volumes:
+        h = object_hulls(vol, G, cache_dir=tmp_path)
+        assert h.vertices.shape == (K, V, 3) and h.n_pieces >= 1
+    assert not list(tmp_path.iterdir())  # read, not copied into the cache
+    many = object_hulls_many(volumes, G, cache_dir=tmp_path, workers=2, progress=False)
+    assert all(np.array_equal(a.vertices, object_hulls(v, G, cache_dir=tmp_path).vertices)
+               for a, v in zip(many, volumes))
+
+
+def test_no_cache_means_no_shipped_pieces_either(volumes, monkeypatch):
+    """cache_dir=False computes (how uncached meshing is timed), also for a shipped object."""
+    calls = []
+
+    def counted(mesh, settings=None, **kwargs):
+        calls.append(mesh)
+        raise RuntimeError("counted")
+
+    monkeypatch.setattr(coacd_pieces, "decompose_mesh", counted)
+    nonconvex = []
+    for vol in volumes:
+        try:
+            object_hulls(vol, G, cache_dir=False)
+        except RuntimeError:
+            nonconvex.append(vol)
+    assert nonconvex, "objects 0-3 are all convex: pick others for this test"
+    assert len(calls) == len(nonconvex)
+
+
+@pytest.mark.slow
+def test_shipped_pieces_equal_what_coacd_makes_now(volumes):
+    """The bundle is a cache, not a source of truth: coacd on this machine makes the same
+    pieces (to float rounding) for a non-convex shipped object."""
+    g16 = volumes[1]  # object 0 as an object set stores it
+    fresh = object_hulls(g16, G, cache_dir=False)
+    shipped = bundled_hulls(_key(g16), K, V)
+    assert np.array_equal(fresh.counts, shipped.counts)
+    np.testing.assert_allclose(fresh.vertices, shipped.vertices, atol=1e-6)
