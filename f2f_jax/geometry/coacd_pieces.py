@@ -5,10 +5,10 @@ coacd on the marching-cubes mesh (or the mesh's hull when it is convex), merged 
 pieces, free slots spent on cutting the pieces that V vertices fit worst, cached on disk by a
 hash of the volume and the settings.
 
-The pieces of the builtin objects that runs, benchmarks and tests start from (the first 64 of
-seed 0, as made by ``mesh_to_tsdf`` and as an object set stores them, float16) ship with the
-package (``builtin_pieces.npz``, rebuilt by ``python -m f2f_jax.cli.bundle_pieces``): a fresh
-machine reads them under the same keys instead of spending ~10 minutes of coacd on them.
+The pieces of the builtin objects that runs, benchmarks and tests start from ship with the
+package (``builtin_pieces.npz``, rebuilt by ``python -m f2f_jax.cli.bundle_pieces``): objects 0-63
+of seed 0 as an object set stores them (float16), 0-15 also as ``mesh_to_tsdf`` makes them.  A
+fresh machine reads them under the same keys instead of spending 8-10 minutes of coacd on them.
 """
 
 from __future__ import annotations
