@@ -6,7 +6,7 @@ import pytest
 
 from f2f_jax.cli.bundle_pieces import builtin_volumes
 from f2f_jax.config import GeometryConfig
-from f2f_jax.geometry import coacd_pieces
+from f2f_jax.geometry import coacd_pieces, hull_pool
 from f2f_jax.geometry.coacd_pieces import CoacdSettings, bundled_hulls, cache_key, object_hulls
 from f2f_jax.geometry.hull_pool import object_hulls_many
 
@@ -42,6 +42,7 @@ def test_shipped_pieces_are_read_instead_of_running_coacd(volumes, tmp_path, mon
         h = object_hulls(vol, G, cache_dir=tmp_path)
         assert h.vertices.shape == (K, V, 3) and h.n_pieces >= 1
     assert not list(tmp_path.iterdir())  # read, not copied into the cache
+    monkeypatch.setattr(hull_pool.subprocess, "Popen", refuse)  # no worker for shipped objects
     many = object_hulls_many(volumes, G, cache_dir=tmp_path, workers=2, progress=False)
     assert all(np.array_equal(a.vertices, object_hulls(v, G, cache_dir=tmp_path).vertices)
                for a, v in zip(many, volumes))
@@ -68,8 +69,9 @@ def test_no_cache_means_no_shipped_pieces_either(volumes, monkeypatch):
 
 @pytest.mark.slow
 def test_shipped_pieces_equal_what_coacd_makes_now(volumes):
-    """The bundle is a cache, not a source of truth: coacd on this machine makes the same
-    pieces (to float rounding) for a non-convex shipped object."""
+    """The bundle is a cache, not a source of truth: coacd here makes the same pieces for a
+    non-convex shipped object (bit for bit on the machine that built it; 1e-6 allowed for
+    another CPU's float rounding)."""
     g16 = volumes[1]  # object 0 as an object set stores it
     fresh = object_hulls(g16, G, cache_dir=False)
     shipped = bundled_hulls(_key(g16), K, V)

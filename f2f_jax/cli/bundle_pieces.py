@@ -40,9 +40,8 @@ def builtin_volumes(n: int, seed: int, g: GeometryConfig, raw_n: int | None = No
     out, seen = [], set()
     for i, mesh in enumerate(builtin_objects(n, seed=seed)):
         raw = mesh_to_tsdf(mesh, g)
-        forms = (raw, raw.astype(np.float16).astype(np.float32)) if i < raw_n else (
-            raw.astype(np.float16).astype(np.float32),)
-        for vol in forms:
+        stored = raw.astype(np.float16).astype(np.float32)  # as load_or_make_objects returns it
+        for vol in (raw, stored) if i < raw_n else (stored,):
             key = vol.tobytes()
             if key not in seen:
                 seen.add(key)

@@ -275,11 +275,10 @@ def _bundle() -> tuple[dict[str, int], np.ndarray, np.ndarray]:
         with np.load(BUNDLE_PATH, allow_pickle=False) as data:
             keys = [str(k) for k in data["keys"]]
             return {k: i for i, k in enumerate(keys)}, data["vertices"], data["counts"]
-    except FileNotFoundError:
-        return {}, np.zeros((0, 0, 0, 3), np.float32), np.zeros((0, 0), np.int32)
     except Exception as exc:  # a broken bundle only costs time: coacd makes the pieces
-        warnings.warn(f"shipped object pieces {BUNDLE_PATH} are unusable ({type(exc).__name__}: "
-                      f"{exc}); computing them", RuntimeWarning, stacklevel=2)
+        if not isinstance(exc, FileNotFoundError):
+            warnings.warn(f"shipped object pieces {BUNDLE_PATH} are unusable ({type(exc).__name__}: "
+                          f"{exc}); computing them", RuntimeWarning, stacklevel=2)
         return {}, np.zeros((0, 0, 0, 3), np.float32), np.zeros((0, 0), np.int32)
 
 
