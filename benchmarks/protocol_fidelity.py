@@ -113,6 +113,9 @@ ABLATIONS: tuple[tuple[str, str, dict], ...] = (
     ("pybullet", "finger-object friction 0.4", dict(finger_friction=0.4)),
     ("pybullet", "gentle lift and jaws open 3 cm clear, together",
      dict(lift_max_force=20.0, open_clearance=0.3)),
+    ("pybullet", "Bullet steps split in 4 (numSubSteps 4: 1/960 s)", dict(substeps=4)),
+    ("pybullet", "Bullet steps split in 8 (numSubSteps 8: 1/1920 s)", dict(substeps=8)),
+    ("pybullet", "Bullet's solver at 200 iterations (numSolverIterations)", dict(solver_iterations=200)),
 )
 
 

@@ -123,9 +123,13 @@ class OriginalProtocol:
     centre_of_mass: str = "centroid"  # "base": at the mesh's bottom centre (original)
     stroke_short: float = 0.0  # jaws stop this far before the cube's faces (original: 0.245)
     settle_turned: bool = True  # False: no settling after turning the object (not the original)
+    # --- Bullet's own solver, for ablations (the original left every one at Bullet's default) ---
+    substeps: int = 0  # numSubSteps: 0 (Bullet's default) one step per 1/240 s; k > 1 splits it
+    solver_iterations: int = 50  # numSolverIterations, Bullet's default
 
 
 PROTOCOL = OriginalProtocol()
+_ENGINE_FIELDS = {"numSubSteps": "substeps", "numSolverIterations": "solver_iterations"}
 
 
 class _Api:
@@ -171,6 +175,11 @@ class OriginalSession:
         api.setAdditionalSearchPath(pybullet_data.getDataPath())
         api.setPhysicsEngineParameter(enableFileCaching=0)
         api.setTimeStep(protocol.timestep)
+        engine = {k: v for k, v in (("numSubSteps", protocol.substeps),
+                                    ("numSolverIterations", protocol.solver_iterations))
+                  if v != getattr(PROTOCOL, _ENGINE_FIELDS[k])}
+        if engine:  # only what an ablation changed: the peer's default run stays Bullet's own
+            api.setPhysicsEngineParameter(**engine)
         api.setGravity(0, 0, -self.cfg.sim.gravity)  # unscaled, as the original
         self.plane = api.loadURDF("plane.urdf")
         self._tmp = tempfile.TemporaryDirectory(prefix="f2f_pybullet_")
