@@ -120,6 +120,20 @@ def test_self_collision_switch_stops_fingers_that_meet_outside_the_object(cfg):
     assert min(closed[False]) > max(closed[True]) + 0.1, closed
 
 
+def test_engine_switches_reach_bullet_and_the_default_leaves_bullets_own(cfg):
+    """The peer's default run is Bullet as the original had it (one 1/240 s step, 50 solver
+    iterations); the ablations' sub-steps and iterations must reach the engine."""
+    with peer.OriginalSession(cfg) as session:
+        default = session.api.getPhysicsEngineParameters()
+    proto = dataclasses.replace(PROTO, substeps=4, solver_iterations=120)
+    with peer.OriginalSession(cfg, proto) as session:
+        changed = session.api.getPhysicsEngineParameters()
+    assert default["numSubSteps"] == 0 and default["numSolverIterations"] == 50, default
+    assert default["fixedTimeStep"] == pytest.approx(1 / 240)
+    assert changed["numSubSteps"] == 4 and changed["numSolverIterations"] == 120, changed
+    assert changed["fixedTimeStep"] == pytest.approx(1 / 240)  # a step is still 1/240 s
+
+
 @pytest.mark.slow
 def test_a_recorded_run_draws_the_same_outcome_as_a_plain_one(cfg, sphere_object, sphere_imprint,
                                                              tmp_path):
