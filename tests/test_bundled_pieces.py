@@ -33,6 +33,19 @@ def test_the_builtin_objects_pieces_ship_under_their_keys(volumes):
     assert len(volumes) == 8  # the float16 rounding changes every volume: both forms ship
 
 
+def test_the_benchmarks_64th_builtin_object_ships_in_both_forms():
+    """The agreement, fidelity and throughput benchmarks take builtin objects 0-63 as
+    ``mesh_to_tsdf`` makes them, a run as an object set stores them: the last of them must ship
+    in both forms, or a fresh machine spends minutes of coacd before a benchmark's first step."""
+    from f2f_jax.data import builtin_objects
+    from f2f_jax.geometry import mesh_to_tsdf
+
+    raw = mesh_to_tsdf(builtin_objects(64, seed=0)[63], G)
+    stored = raw.astype(np.float16).astype(np.float32)
+    for name, vol in (("raw", raw), ("float16", stored)):
+        assert bundled_hulls(_key(vol), K, V) is not None, f"object 63 ({name}) not shipped: `{REBUILD}`"
+
+
 def test_shipped_pieces_are_read_instead_of_running_coacd(volumes, tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("coacd ran for a shipped object")

@@ -8,8 +8,9 @@ coacd spends 5-30 s of a core on each.  Their pieces are made once here (through
 and its worker processes, ``object_hulls_many``) and written to
 ``f2f_jax/geometry/builtin_pieces.npz`` under their cache keys, for both forms a volume of them
 takes: rounded to float16 as an object set stores it (``load_or_make_objects``: the default run's
-64 objects, the tiny run's first 16), and, for the first ``--raw-n``, as ``mesh_to_tsdf`` makes
-it (tests, the benchmarks' first objects).  ``object_hulls`` reads them when its cache has no
+64 objects, the tiny run's first 16), and, for the first ``--raw-n`` (default all 64), as
+``mesh_to_tsdf`` makes it (the tests, and the 64 builtin objects of the agreement, fidelity and
+throughput benchmarks).  ``object_hulls`` reads them when its cache has no
 entry.  Rebuild after anything that changes the volumes or the cache keys (the families, the
 TSDF code, ``CoacdSettings``, ``_CACHE_VERSION``); ``tests/test_bundled_pieces.py`` says when.
 """
@@ -52,8 +53,8 @@ def builtin_volumes(n: int, seed: int, g: GeometryConfig, raw_n: int | None = No
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--n", type=int, default=64, help="first builtin objects (default 64)")
-    p.add_argument("--raw-n", type=int, default=16,
-                   help="of those, the first ones also as mesh_to_tsdf makes them (default 16)")
+    p.add_argument("--raw-n", type=int, default=64,
+                   help="of those, the first ones also as mesh_to_tsdf makes them (default 64)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", type=Path, default=BUNDLE_PATH)
     p.add_argument("--workers", type=int, default=None, help="coacd processes (default: one per core)")

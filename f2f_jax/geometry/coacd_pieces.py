@@ -7,8 +7,9 @@ hash of the volume and the settings.
 
 The pieces of the builtin objects that runs, benchmarks and tests start from ship with the
 package (``builtin_pieces.npz``, rebuilt by ``python -m f2f_jax.cli.bundle_pieces``): objects 0-63
-of seed 0 as an object set stores them (float16), 0-15 also as ``mesh_to_tsdf`` makes them.  A
-fresh machine reads them under the same keys instead of spending 8-10 minutes of coacd on them.
+of seed 0 as an object set stores them (float16) and as ``mesh_to_tsdf`` makes them (the tests'
+and benchmarks' form).  A fresh machine reads them under the same keys instead of spending 8-10
+minutes of coacd on each form.
 """
 
 from __future__ import annotations
