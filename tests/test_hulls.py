@@ -1,5 +1,6 @@
 """Convex pieces for simulation: fixed layout, fit to the shape, object cache, failure paths."""
 
+import dataclasses
 import os
 import time
 import warnings
@@ -394,3 +395,29 @@ def test_with_max_vertices_keeps_slots_and_shrinks_each_piece_inside_itself():
     assert points_in_hulls(full, coarse.vertices[2, :8], tol=1e-7).all()
     with pytest.raises(ValueError, match="max_vertices"):
         with_max_vertices(full, 3)
+
+
+def test_remembered_finger_hulls_are_made_once_per_volume_equal_and_read_only(sphere_tsdf, monkeypatch):
+    from f2f_jax import config as f2f_config
+
+    cfg = f2f_config.default()
+    left, _ = imprint_fingers(sphere_tsdf, cfg)
+    made = []
+    real = finger_tiling.finger_hulls
+    monkeypatch.setattr(finger_tiling, "_memo", type(finger_tiling._memo)())
+    monkeypatch.setattr(finger_tiling, "finger_hulls",
+                        lambda *a, **k: made.append(1) or real(*a, **k))
+    first = finger_tiling.remembered_finger_hulls(left, cfg)
+    again = finger_tiling.remembered_finger_hulls(left.copy(), cfg)  # same values, other memory
+    assert again is first and len(made) == 1
+    fresh = real(left, cfg)
+    np.testing.assert_array_equal(first.vertices, fresh.vertices)
+    np.testing.assert_array_equal(first.counts, fresh.counts)
+    with pytest.raises(ValueError):
+        first.vertices[0, 0, 0] = 1.0  # shared between callers: nobody may edit them
+    nudged = left.copy()
+    nudged[0, 0, 0] = np.nextafter(nudged[0, 0, 0], np.float32(2))  # one value, one ulp
+    finger_tiling.remembered_finger_hulls(nudged, cfg)
+    other = cfg.replace(geometry=dataclasses.replace(cfg.geometry, hull_vertices=16))
+    assert finger_tiling.remembered_finger_hulls(left, other).max_vertices == 16
+    assert len(made) == 3

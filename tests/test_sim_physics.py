@@ -316,3 +316,19 @@ def test_a_push_through_the_world_origin_also_turns_the_object(sphere_tsdf, sphe
     with pytest.raises(ValueError, match="push_point"):
         GraspRunner(build_model(sphere_hulls, finger_hulls(left, tiny), finger_hulls(right, tiny),
                                 cfg), cfg).push(state, 0.0, direction)
+
+
+def test_a_batch_makes_each_distinct_fingers_pieces_once(sphere_tsdf, sphere_hulls, tiny, monkeypatch):
+    """The WSG50 pads beside every object of a batch (a dataset's baseline rows) are meshed once:
+    their pieces cost as much as the failed grasp's whole simulation."""
+    from f2f_jax.geometry import finger_tiling
+
+    left, right = wsg50_fingers(tiny)
+    made = []
+    real = finger_tiling.finger_hulls
+    monkeypatch.setattr(finger_tiling, "_memo", type(finger_tiling._memo)())
+    monkeypatch.setattr(finger_tiling, "finger_hulls", lambda *a, **k: made.append(1) or real(*a, **k))
+    out = evaluate([sphere_tsdf] * 3, [left] * 3, [right] * 3, cfg=tiny, object_hulls=sphere_hulls,
+                   threads=1)
+    assert len(made) == len({left.tobytes(), right.tobytes()})
+    assert not out.any(), f"flat pads cannot hold the sphere at friction 0.2: {out}"

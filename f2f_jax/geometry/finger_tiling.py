@@ -13,7 +13,10 @@ that faces the mount (an undercut) is filled down to the mount; imprint fingers 
 
 from __future__ import annotations
 
+import hashlib
 import heapq
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +43,9 @@ _MIN_HEIGHT = 1e-4  # m; a clipped piece must reach this far from the mount, els
 # any angle; cuts along them separate a wall from the floor beside it in one piece each.
 _CUT_ANGLES_DEG = (0.0, 45.0, 90.0, 135.0)
 _MIN_SIDE = 0.5  # each side of a cut keeps >= 0.5 sqrt(n) of the tile's n columns
+# Distinct fingers whose pieces ``remembered_finger_hulls`` keeps (~7 KB each): the fixed
+# baselines of a batch (WSG50 pads beside every object) plus a cycle's worth of repeats.
+_REMEMBERED = 256
 
 
 def finger_height_map(finger_tsdf, cfg=None) -> np.ndarray:
@@ -402,3 +408,36 @@ def finger_hulls(finger_tsdf, cfg=None, *, max_pieces: int | None = None,
     return pack_pieces(pieces, k, v)
 
 
+
+
+_memo: OrderedDict[tuple, Hulls] = OrderedDict()
+_memo_lock = threading.Lock()
+
+
+def remembered_finger_hulls(finger_tsdf, cfg=None) -> Hulls:
+    """``finger_hulls(finger_tsdf, cfg)`` with its default settings, made once per distinct
+    finger volume and geometry and kept for the last ``_REMEMBERED`` of them.
+
+    The simulator asks for the pieces of every candidate's two fingers, and many batches repeat
+    fingers: the WSG50 pads or WSG-FMF fingers beside every object of a dataset or a table, the
+    same imprints scored under several settings.  Their pieces cost 30-90 ms each, as much as a
+    failed grasp's whole simulation.  The returned arrays are shared between callers and made
+    read-only.  Thread-safe; two threads that miss on the same finger at once both compute it.
+    """
+    g = geometry_config(cfg)
+    arr = np.ascontiguousarray(finger_tsdf)
+    key = (hashlib.blake2b(arr.view(np.uint8).reshape(-1), digest_size=16).digest(),
+           arr.dtype.str, arr.shape, g)
+    with _memo_lock:
+        hit = _memo.get(key)
+        if hit is not None:
+            _memo.move_to_end(key)
+            return hit
+    hulls = finger_hulls(arr, g)
+    hulls.vertices.setflags(write=False)
+    hulls.counts.setflags(write=False)
+    with _memo_lock:
+        _memo[key] = hulls
+        while len(_memo) > _REMEMBERED:
+            _memo.popitem(last=False)
+    return hulls

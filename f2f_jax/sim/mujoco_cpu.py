@@ -21,7 +21,7 @@ import numpy as np
 
 from f2f_jax.config import BACKENDS, Config, with_sim_preset
 from f2f_jax.errors import F2FError, VolumeError
-from f2f_jax.geometry.finger_tiling import finger_hulls
+from f2f_jax.geometry.finger_tiling import remembered_finger_hulls as finger_hulls
 from f2f_jax.geometry.fingers import feasibility_report
 from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.pieces import object_pieces_many as make_object_hulls_many
