@@ -110,13 +110,23 @@ ABLATIONS: tuple[tuple[str, str, dict], ...] = (
     ("pybullet", "centre of mass at the bottom centre (the original's)", dict(centre_of_mass="base")),
     ("pybullet", "jaws stop 2.45 cm short of the cube (the original's)", dict(stroke_short=0.245)),
     ("pybullet", "no settling before the turned grasps", dict(settle_turned=False)),
-    ("pybullet", "finger-object friction 0.4", dict(finger_friction=0.4)),
+    ("pybullet", "finger-object friction 0.4", {"sim.finger_friction": 0.4}),
     ("pybullet", "gentle lift and jaws open 3 cm clear, together",
      dict(lift_max_force=20.0, open_clearance=0.3)),
     ("pybullet", "Bullet steps split in 4 (numSubSteps 4: 1/960 s)", dict(substeps=4)),
     ("pybullet", "Bullet steps split in 8 (numSubSteps 8: 1/1920 s)", dict(substeps=8)),
+    ("pybullet", "Bullet steps split in 4, no rolling or spinning friction at the fingers (the original's: 1)",
+     dict(substeps=4, finger_rolling_friction=0.0)),
+    ("pybullet", "no rolling or spinning friction at the fingers (the original's: 1)",
+     dict(finger_rolling_friction=0.0)),
     ("pybullet", "Bullet's solver at 200 iterations (numSolverIterations)", dict(solver_iterations=200)),
 )
+
+
+# A PyBullet-side ablation key with this prefix changes the SimConfig both protocols read (the
+# object's friction, its mass); any other key is an ``OriginalProtocol`` field.  Some names
+# exist in both (push_point, grip_force, timestep), so the prefix, not a lookup, decides.
+SIM_PREFIX = "sim."
 
 
 def _peer_chunk(args):
@@ -126,9 +136,9 @@ def _peer_chunk(args):
 
     from f2f_jax.bench import pybullet_runs as peer
 
-    fields = {f.name for f in dataclasses.fields(peer.OriginalProtocol)}
-    protocol = dataclasses.replace(peer.PROTOCOL, **{k: v for k, v in changes.items() if k in fields})
-    sim_changes = {k: v for k, v in changes.items() if k not in fields}
+    protocol = dataclasses.replace(peer.PROTOCOL, **{k: v for k, v in changes.items()
+                                                     if not k.startswith(SIM_PREFIX)})
+    sim_changes = {k[len(SIM_PREFIX):]: v for k, v in changes.items() if k.startswith(SIM_PREFIX)}
     if sim_changes:
         cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, **sim_changes))
     out, stats = peer.evaluate_original(objects, lefts, rights, cfg=cfg, protocol=protocol)
@@ -138,7 +148,8 @@ def _peer_chunk(args):
 def run_peer(objects, lefts, rights, cfg, workers: int, changes: dict | None = None):
     """The PyBullet original on every triple, in ``workers`` spawned processes: ([N, 11], steps).
 
-    changes: ``OriginalProtocol`` fields (else ``SimConfig`` fields) to change, for an ablation.
+    changes: ``OriginalProtocol`` fields to change, for an ablation, and ``SimConfig`` fields
+        (the settings both protocols share: masses, friction) as "sim.FIELD".
     """
     n = len(objects)
     bounds = np.linspace(0, n, max(1, min(workers, n)) + 1).astype(int)

@@ -4,6 +4,7 @@ original on the same triples, the report's figures consistent with the outcomes.
 import importlib
 import json
 
+import numpy as np
 import pytest
 
 pytest.importorskip("pybullet")
@@ -46,3 +47,39 @@ def test_fidelity_report_on_one_object(tmp_path, capsys, monkeypatch):
     assert "agreement with the PyBullet original" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         fidelity.main(["--n-objects", "0"])
+
+
+def test_every_ablation_names_fields_that_exist_on_its_side():
+    """Our side's keys are SimConfig fields; the peer's are OriginalProtocol fields, or "sim."
+    and a SimConfig field (the shared settings).  A name lookup instead of the prefix once sent
+    the peer's "finger-object friction 0.4" to the finger links' friction, which Bullet
+    multiplies by the object's 0.2: the row lowered the friction it meant to raise."""
+    import dataclasses
+
+    from f2f_jax.bench import pybullet_runs as peer
+    from f2f_jax.config import SimConfig
+
+    proto = {f.name for f in dataclasses.fields(peer.OriginalProtocol)}
+    sim_fields = {f.name for f in dataclasses.fields(SimConfig)}
+    for side, label, changes in fidelity.ABLATIONS:
+        allowed = sim_fields if side == "ours" else proto | {fidelity.SIM_PREFIX + f for f in sim_fields}
+        assert side in ("ours", "pybullet") and set(changes) <= allowed, (side, label, changes)
+    friction = [c for s, label, c in fidelity.ABLATIONS if s == "pybullet" and "friction 0.4" in label]
+    assert friction == [{"sim.finger_friction": 0.4}]
+
+
+def test_a_peer_ablation_changes_the_protocol_or_the_shared_config_by_its_prefix(monkeypatch):
+    from f2f_jax import config
+    from f2f_jax.bench import pybullet_runs as peer
+
+    seen = {}
+
+    def capture(objects, lefts, rights, *, cfg, protocol):
+        seen.update(cfg=cfg, protocol=protocol)
+        return np.zeros((0, 11), np.uint8), {"steps": 0}
+
+    monkeypatch.setattr(peer, "evaluate_original", capture)
+    fidelity._peer_chunk(([], [], [], config.default(), {"sim.finger_friction": 0.4, "substeps": 4}))
+    assert seen["cfg"].sim.finger_friction == 0.4  # the object's lateral friction in Bullet
+    assert seen["protocol"].substeps == 4
+    assert seen["protocol"].finger_lateral_friction == peer.PROTOCOL.finger_lateral_friction

@@ -95,7 +95,13 @@ class OriginalProtocol:
     # the mount block sits on top of the finger cube, behind the mount plane (WSG50_MOUNT_SIMPLE
     # x10 is 0.49 x 0.5 x 0.27 above its finger): it never reaches an object the finger misses
     mount_half_extents: tuple[float, float, float] = (0.245, 0.25, 0.135)
-    finger_friction: float = 1.0  # lateral, rolling and spinning friction of the finger links
+    # lateral friction of the finger links (not called finger_friction: that name is
+    # SimConfig's finger-object coefficient, the object's lateral friction here)
+    finger_lateral_friction: float = 1.0
+    # rolling and spinning friction of the finger links (the original's URDF: 1 each).  Bullet
+    # combines them with the object's lateral friction (r_finger * mu_object + r_object *
+    # mu_finger): 0.2 units of lever, 2 cm at true scale, against turning about any contact
+    finger_rolling_friction: float = 1.0
     grip_force: float = 1.0  # max_grasp_force: the jaw motors' force limit
     grip_position_gain: float = 0.01  # WSG50.speed, passed as positionGains
     jaw_motion_steps: int = 500  # steps after every open / close command
@@ -285,9 +291,9 @@ class OriginalSession:
         for joint, stroke in zip(jaws, strokes):
             api.changeDynamics(body, joint, jointLowerLimit=0.0, jointUpperLimit=stroke)
         for finger in fingers:
-            api.changeDynamics(body, finger, lateralFriction=pr.finger_friction,
-                               rollingFriction=pr.finger_friction,
-                               spinningFriction=pr.finger_friction)
+            api.changeDynamics(body, finger, lateralFriction=pr.finger_lateral_friction,
+                               rollingFriction=pr.finger_rolling_friction,
+                               spinningFriction=pr.finger_rolling_friction)
         constraint = api.createConstraint(
             parentBodyUniqueId=body, parentLinkIndex=-1, childBodyUniqueId=-1, childLinkIndex=-1,
             jointType=p.JOINT_FIXED, jointAxis=[0, 0, 0], parentFramePosition=[0, 0, 0],
