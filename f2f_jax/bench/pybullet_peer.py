@@ -48,6 +48,11 @@ can measure what the original's choice changes):
   with ``vertices=`` makes one hull only, and ``createCollisionShapeArray`` takes no vertices.)
   The meshing itself (V-HACD, seconds per finger in the original) is not timed.
 
+Three more switches keep the original's values by default, for ablations: ``substeps`` (Bullet's
+``numSubSteps``: the original's 1/240 s step is not converged; split in 4 or 8, a fifth of the
+imprint trials turn from failures into successes), ``solver_iterations`` and
+``finger_rolling_friction`` (the fingers' rolling and spinning friction, 1 in the original's URDF).
+
 ``pybullet_runs`` records, renders and times sessions; ``python benchmarks/pybullet_original.py``
 prints evaluations per second on imprint triples.  Needs the ``pybullet`` extra.
 """
