@@ -332,3 +332,32 @@ def test_a_batch_makes_each_distinct_fingers_pieces_once(sphere_tsdf, sphere_hul
                    threads=1)
     assert len(made) == len({left.tobytes(), right.tobytes()})
     assert not out.any(), f"flat pads cannot hold the sphere at friction 0.2: {out}"
+
+
+def test_a_turned_grasp_starts_where_the_first_settle_left_the_object_turned(sphere_hulls, flat_tips):
+    """``shared_settle``: the six turned grasps skip their settle and start from the yaw-0 settle's
+    pose turned about the vertical.  The floor does not change under that turn, so the pose must
+    be the one a settle of the turned object reaches (the coarse sphere hull tips and rolls when
+    set down, so the settle does move it)."""
+    cfg = config.with_sim_preset(config.tiny(), "fast")
+    assert cfg.sim.shared_settle
+    model = build_model(sphere_hulls, *flat_tips, cfg)
+    runner = GraspRunner(model, cfg)
+    runner.grasp(0.0)  # records the settled pose
+    ids, d, yaw = runner.ids, runner.data, 0.5
+    q = ids.object_qpos
+    runner.place(yaw)
+    placed = d.qpos[q: q + 7].copy()
+    runner.turn_settled(yaw)
+    turned = d.qpos[q: q + 7].copy()
+    runner.place(yaw)
+    runner.advance(cfg.sim.steps(cfg.sim.settle_time), until_rest=True)
+    settled = d.qpos[q: q + 7].copy()
+
+    def angle(a, b):  # radians between two unit quaternions
+        return 2 * np.arccos(min(1.0, abs(float(np.dot(a, b)))))
+
+    moved = np.linalg.norm(settled[:3] - placed[:3]) + angle(settled[3:], placed[3:]) * 0.03
+    assert moved > 2e-4, f"the settle hardly moved the sphere ({moved:.2e}): the test shows nothing"
+    np.testing.assert_allclose(turned[:3], settled[:3], atol=1e-4)
+    assert angle(turned[3:], settled[3:]) < np.radians(0.5)

@@ -56,7 +56,7 @@ def old_run_config(**sim) -> dict:
     """The default config as a run directory saved before SimConfig.integrator existed stores
     it: 2 ms steps, no integrator field (MuJoCo's Euler was the only one used)."""
     saved = config_to_dict(config.default())
-    del saved["sim"]["integrator"]
+    del saved["sim"]["integrator"], saved["sim"]["shared_settle"]  # neither existed then
     saved["sim"].update(timestep=0.002, **sim)
     return saved
 
@@ -75,6 +75,19 @@ def test_a_run_of_the_first_fast_preset_resumes_with_its_own_simulator():
     cfg = config_from_dict(old_run_config())
     assert (cfg.sim.timestep, cfg.sim.integrator, cfg.sim.rest_speed) == (0.002, "euler", 0.002)
     assert config.sim_preset_name(cfg) == "custom"
+
+
+def test_a_run_of_the_4ms_preset_from_before_the_shared_settle_goes_on_settling_every_grasp(tmp_path):
+    from f2f_jax.train.run_dir import with_recorded_simulator
+
+    saved = config_to_dict(config.default())
+    del saved["sim"]["shared_settle"]  # as run.json files written before it existed hold it
+    recorded = config_from_dict(saved)
+    assert recorded.sim.shared_settle is False and recorded.sim.timestep == 0.004
+    assert config.sim_preset_name(recorded) == "custom"
+    resumed = with_recorded_simulator(config.default(), recorded, tmp_path)
+    assert resumed.sim == recorded.sim  # its store was filled that way: it goes on that way
+    assert config.sim_preset_name(config.with_sim_preset(recorded, "fast")) == "fast"
 
 
 def test_depth_map_reads_where_the_object_begins_and_ends_along_x(cfg):

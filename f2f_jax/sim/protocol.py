@@ -19,7 +19,11 @@ Rules (DESIGN.md section 2):
 * with ``SimConfig.rest_speed > 0`` the settle, close, hold and post-push hold phases also end
   early once nothing moves faster than ``rest_speed`` for ``rest_time``: an object at rest in
   the fingers with the gripper standing still stays where it is, so the rest of the hold cannot
-  change the outcome (``benchmarks/sim_agreement.py`` measures that it does not).
+  change the outcome (``benchmarks/sim_agreement.py`` measures that it does not);
+* with ``SimConfig.shared_settle`` a turned grasp starts from the first grasp's settled object
+  turned about the vertical through its starting point (``GraspRunner.turn_settled``) instead of
+  settling again: the floor is unchanged by that turn and the open jaws touch nothing, so it is
+  the same state up to rounding.
 """
 
 from __future__ import annotations
@@ -124,6 +128,8 @@ class GraspRunner:
         self.opener = JawOpener(model, self.ids, self.cfg)
         self.steps = 0
         self.z_start = np.nan  # object centre height after settling in the last grasp (m)
+        # the object's free-joint (qpos [7], qvel [6]) after the last yaw-0 settle
+        self.settled: tuple[np.ndarray, np.ndarray] | None = None
         self._warnings = 0
         self._lift_dof = int(self.model.jnt_dofadr[self.model.joint("lift").id])
         self._speed_dofs = np.concatenate([self.ids.jaw_dof, [self._lift_dof]]).astype(np.int64)
@@ -259,6 +265,26 @@ class GraspRunner:
         self._warnings = self._warning_count()
         return finger_object_contacts(m, d, ids)
 
+    def turn_settled(self, yaw: float) -> None:
+        """After ``place(yaw)``: put the object where the last yaw-0 settle left it, turned by
+        ``yaw`` about the vertical through its starting point (where ``place`` turns it), its
+        velocity turned with it."""
+        m, d, ids = self.model, self.data, self.ids
+        q, v = ids.object_qpos, ids.object_dof
+        qpos, qvel = self.settled
+        c, s = math.cos(yaw), math.sin(yaw)
+        turn = np.array([[c, -s], [s, c]])
+        start = d.qpos[q: q + 2].copy()
+        d.qpos[q: q + 2] = start + turn @ (qpos[:2] - start)
+        d.qpos[q + 2] = qpos[2]
+        quat = np.empty(4)
+        mujoco.mju_mulQuat(quat, object_quat(yaw), qpos[3:])
+        d.qpos[q + 3: q + 7] = quat
+        d.qvel[v: v + 2] = turn @ qvel[:2]
+        d.qvel[v + 2] = qvel[2]
+        d.qvel[v + 3: v + 6] = qvel[3:]  # a free joint's angular velocity is in its body's frame
+        mujoco.mj_forward(m, d)
+
     def approach(self) -> tuple[np.ndarray, int]:
         """Move the open jaws in to ``open_margin`` from the object where it now lies.
 
@@ -281,7 +307,13 @@ class GraspRunner:
         """
         s, d, ids = self.cfg.sim, self.data, self.ids
         touching = self.place(yaw)
-        self.advance(s.steps(s.settle_time), until_rest=True)
+        if s.shared_settle and yaw != 0.0 and self.settled is not None:
+            self.turn_settled(yaw)
+        else:
+            self.advance(s.steps(s.settle_time), until_rest=True)
+            if yaw == 0.0:
+                q, v = ids.object_qpos, ids.object_dof
+                self.settled = (d.qpos[q: q + 7].copy(), d.qvel[v: v + 6].copy())
         z_start = self.object_height()
         self.z_start = z_start
         _, touching_closing = self.approach()
