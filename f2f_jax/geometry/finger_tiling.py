@@ -408,8 +408,6 @@ def finger_hulls(finger_tsdf, cfg=None, *, max_pieces: int | None = None,
     return pack_pieces(pieces, k, v)
 
 
-
-
 _memo: OrderedDict[tuple, Hulls] = OrderedDict()
 _memo_lock = threading.Lock()
 
