@@ -140,6 +140,7 @@ class OriginalProtocol:
 
 
 PROTOCOL = OriginalProtocol()
+# Bullet engine parameter -> the OriginalProtocol field that sets it (only when an ablation changes it)
 _ENGINE_FIELDS = {"numSubSteps": "substeps", "numSolverIterations": "solver_iterations"}
 
 
@@ -186,9 +187,8 @@ class OriginalSession:
         api.setAdditionalSearchPath(pybullet_data.getDataPath())
         api.setPhysicsEngineParameter(enableFileCaching=0)
         api.setTimeStep(protocol.timestep)
-        engine = {k: v for k, v in (("numSubSteps", protocol.substeps),
-                                    ("numSolverIterations", protocol.solver_iterations))
-                  if v != getattr(PROTOCOL, _ENGINE_FIELDS[k])}
+        engine = {name: getattr(protocol, field) for name, field in _ENGINE_FIELDS.items()
+                  if getattr(protocol, field) != getattr(PROTOCOL, field)}
         if engine:  # only what an ablation changed: the peer's default run stays Bullet's own
             api.setPhysicsEngineParameter(**engine)
         api.setGravity(0, 0, -self.cfg.sim.gravity)  # unscaled, as the original

@@ -21,7 +21,7 @@ import numpy as np
 
 from f2f_jax.config import BACKENDS, Config, with_sim_preset
 from f2f_jax.errors import F2FError, VolumeError
-from f2f_jax.geometry.finger_tiling import remembered_finger_hulls as finger_hulls
+from f2f_jax.geometry.finger_tiling import remembered_finger_hulls
 from f2f_jax.geometry.fingers import feasibility_report
 from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.pieces import object_pieces_many as make_object_hulls_many
@@ -101,8 +101,8 @@ def simulate_candidate(obj_hulls: Hulls | str, left: np.ndarray, right: np.ndarr
         return TrialResult.zeros(cfg.sim.n_trials, error=f"object hulls: {obj_hulls}")
     place = {} if object_xy is None else {"object_xy": (float(object_xy[0]), float(object_xy[1]))}
     try:
-        model = build_model(obj_hulls, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg,
-                            **place)
+        model = build_model(obj_hulls, remembered_finger_hulls(left, cfg),
+                            remembered_finger_hulls(right, cfg), cfg, **place)
     except (F2FError, ValueError) as exc:
         return TrialResult.zeros(cfg.sim.n_trials, error=f"{type(exc).__name__}: {exc}")
     return run_trials(model, cfg)
@@ -314,8 +314,8 @@ def _evaluate_batched(backend, objs, lefts, rights, feasible, cfg, *, object_hul
         try:
             if isinstance(hulls, str):
                 raise F2FError(f"object hulls: {hulls}")
-            models.append(build_model(hulls, finger_hulls(lefts[i], cfg),
-                                      finger_hulls(rights[i], cfg), cfg, **options))
+            models.append(build_model(hulls, remembered_finger_hulls(lefts[i], cfg),
+                                      remembered_finger_hulls(rights[i], cfg), cfg, **options))
             index.append(i)
         except (F2FError, ValueError) as exc:
             errors[int(i)] = f"{type(exc).__name__}: {exc}"
