@@ -42,6 +42,8 @@ _MIN_HEIGHT = 1e-4  # m; a clipped piece must reach this far from the mount, els
 # Directions of the cut lines in the (iu, iv) plane.  Steps in a turned object's imprint run at
 # any angle; cuts along them separate a wall from the floor beside it in one piece each.
 _CUT_ANGLES_DEG = (0.0, 45.0, 90.0, 135.0)
+_CUT_COS = np.cos(np.radians(_CUT_ANGLES_DEG))[:, None]
+_CUT_SIN = np.sin(np.radians(_CUT_ANGLES_DEG))[:, None]
 _MIN_SIDE = 0.5  # each side of a cut keeps >= 0.5 sqrt(n) of the tile's n columns
 # Distinct fingers whose pieces ``remembered_finger_hulls`` keeps (~7 KB each): the fixed
 # baselines of a batch (WSG50 pads beside every object) plus a cycle's worth of repeats.
@@ -260,19 +262,31 @@ def _make_tile(field: _HeightField, members: np.ndarray, cover: bool) -> _Tile:
     return _Tile(members, pts, error if error > _EXACT else 0.0, hull_points)
 
 
-def _rss(gram: np.ndarray, rhs: np.ndarray, sq: np.ndarray) -> np.ndarray:
+def _rss(sums: np.ndarray) -> np.ndarray:
     """Residual sums of squares of least-squares planes from their normal equations, batched:
-    gram [n, 3, 3] (symmetric), rhs [n, 3], sq [n] -> sq - rhs . gram^-1 rhs.  Closed-form 3x3
-    inverse (adjugate): thousands of tiny solves, no LAPACK call overhead."""
-    a, b, c = gram[:, 0, 0], gram[:, 0, 1], gram[:, 0, 2]
-    d, e, f = gram[:, 1, 1] + _RIDGE, gram[:, 1, 2], gram[:, 2, 2] + _RIDGE
+    sums [10, ...] as ``_normal_terms`` lays them out -> sq - rhs . gram^-1 rhs.  Closed-form
+    3x3 inverse (adjugate): thousands of tiny solves, no LAPACK call overhead."""
+    a, b, c, d, e, f = sums[:6]
+    d, f = d + _RIDGE, f + _RIDGE
     # cofactors of the symmetric matrix [[a b c] [b d e] [c e f]]
     A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
     D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
     det = a * A + b * B + c * C
-    x, y, z = rhs[:, 0], rhs[:, 1], rhs[:, 2]
+    x, y, z, sq = sums[6:]
     quad = (A * x * x + D * y * y + F * z * z + 2 * (B * x * y + C * x * z + E * y * z))
     return sq - quad / np.where(np.abs(det) > 1e-300, det, np.inf)
+
+
+def _normal_terms(x: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Per column, the terms whose sums are the normal equations of a plane fit: x [3, n]
+    (1, u, v), h [n] -> [10, n]: the gram's upper triangle x0x0 x0x1 x0x2 x1x1 x1x2 x2x2, then
+    x0h x1h x2h, then h h."""
+    terms = np.empty((10, x.shape[1]))
+    for k, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+        np.multiply(x[i], x[j], out=terms[k])
+    np.multiply(x, h, out=terms[6:9])
+    np.multiply(h, h, out=terms[9])
+    return terms
 
 
 _RIDGE = 1e-6  # on the slope terms (index units): keeps one-line tiles' planes flat
@@ -294,34 +308,37 @@ def _best_cut(field: _HeightField, members: np.ndarray):
     iv = field.iv[members].astype(np.float64)
     h = field.h_flat[members]
     x = np.stack([np.ones(n), iu - iu.mean(), iv - iv.mean()], 1)  # [n, 3]
-    total_gram = np.einsum("ni,nj->ij", x, x)
-    total_rhs = np.einsum("ni,n->i", x, h)
-    total_sq = float(np.sum(h * h))
+    gram = np.einsum("ni,nj->ij", x, x)
+    rhs = np.einsum("ni,n->i", x, h)
+    total = np.array([gram[0, 0], gram[0, 1], gram[0, 2], gram[1, 1], gram[1, 2], gram[2, 2],
+                      rhs[0], rhs[1], rhs[2], np.sum(h * h)])
+    terms = _normal_terms(x.T, h)
     min_side = max(1.0, _MIN_SIDE * np.sqrt(n))
-    best = None
-    for angle in _CUT_ANGLES_DEG:
-        t = iu * np.cos(np.radians(angle)) + iv * np.sin(np.radians(angle))
-        order = np.argsort(t, kind="stable")
-        ts = t[order]
-        cuts = np.flatnonzero(np.diff(ts) > 1e-9) + 1  # cut before sorted position p
-        # no slivers: a cut that shaves a corner column off lowers the squares a lot (an empty
-        # corner counts as height 0) but not the worst error
-        cuts = cuts[(cuts >= min_side) & (n - cuts >= min_side)]
-        if len(cuts) == 0:
-            continue
-        xs, hs = x[order], h[order]
-        gram = np.cumsum(xs[:, :, None] * xs[:, None, :], axis=0)[cuts - 1]
-        rhs = np.cumsum(xs * hs[:, None], axis=0)[cuts - 1]
-        sq = np.cumsum(hs * hs)[cuts - 1]
-        cost = _rss(gram, rhs, sq) + _rss(total_gram - gram, total_rhs - rhs, total_sq - sq)
-        # prefer cuts near the middle among near-equals: balanced tiles shrink errors fastest
-        cost = cost + 1e-9 * (1.0 + np.abs(cost).max()) * np.abs(cuts - n / 2) / n
-        j = int(np.argmin(cost))
-        if best is None or cost[j] < best[0]:
-            best = (cost[j], order, cuts[j])
-    if best is None:
+    # every direction at once: positions along its normal, the columns in that order, and the
+    # normal equations' prefix sums down that order
+    t = _CUT_COS * iu + _CUT_SIN * iv  # [directions, n]
+    orders = np.argsort(t, axis=1, kind="stable")
+    ts = np.take_along_axis(t, orders, axis=1)
+    # a cut before sorted position q + 1 wherever the position steps; no slivers: a cut that
+    # shaves a corner column off lowers the squares a lot (an empty corner counts as height 0)
+    # but not the worst error
+    q = np.arange(1, n)
+    ok = (np.diff(ts, axis=1) > 1e-9) & (q >= min_side) & (n - q >= min_side)
+    direction, q = np.nonzero(ok)
+    if len(q) == 0:
         return None
-    _, order, p = best
+    prefix = np.cumsum(terms[:, orders], axis=2)  # [10, directions, n]
+    before = prefix[:, direction, q]  # [10, cuts]
+    cost = _rss(before) + _rss(total[:, None] - before)
+    cuts = q + 1
+    # prefer cuts near the middle among near-equals: balanced tiles shrink errors fastest
+    first = np.ones(len(q), bool)
+    first[1:] = direction[1:] != direction[:-1]
+    starts = np.flatnonzero(first)
+    scale = np.maximum.reduceat(np.abs(cost), starts)[np.cumsum(first) - 1]
+    cost = cost + 1e-9 * (1.0 + scale) * np.abs(cuts - n / 2) / n
+    j = int(np.argmin(cost))  # the first minimum: earlier directions win ties
+    order, p = orders[direction[j]], cuts[j]
     return np.sort(members[order[:p]]), np.sort(members[order[p:]])
 
 
