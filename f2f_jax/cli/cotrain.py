@@ -18,23 +18,15 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import sys
 from pathlib import Path
 
 from f2f_jax import config  # no JAX here: the XLA flags set in main still take effect
+from f2f_jax.cli import reproducible
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.data.sources import mesh_files
 from f2f_jax.errors import F2FError
 from f2f_jax.sim import ray_executor
-
-
-def _deterministic_xla() -> None:
-    """A resumed run must end where an uninterrupted one ends: ask XLA for deterministic GPU
-    kernels (no atomics in reductions).  Set before JAX starts; harmless on a CPU."""
-    flag = "--xla_gpu_deterministic_ops=true"
-    if flag not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
 
 
 def _default_backend() -> str:
@@ -83,6 +75,7 @@ def _parser() -> argparse.ArgumentParser:
                         "--set train.generator_lr=3e-4 --set sim.timestep=0.002; recorded in the "
                         "run directory's run.json, which a resumed run must match")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    reproducible.add_cli_argument(p)
     ray_executor.add_cli_arguments(p)
     return p
 
@@ -130,11 +123,14 @@ def _run_config(args):
 
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
-    _deterministic_xla()
 
     def fail(msg: str) -> int:
         print(f"cotrain: error: {msg}", file=sys.stderr)
         return 2
+
+    if args.xla_threads < 0:
+        return fail(f"--xla-threads must be >= 0, got {args.xla_threads}")
+    reproducible.reproducible_xla(args.xla_threads)  # before JAX starts: same numbers everywhere
 
     try:
         cfg = _run_config(args)

@@ -23,6 +23,7 @@ import uuid
 import warnings
 from pathlib import Path
 
+from f2f_jax.cli import reproducible  # no JAX until reproducible_xla runs
 from f2f_jax.config import BACKENDS  # numpy only: --help stays quick
 
 EXIT_ERROR = 2
@@ -56,6 +57,7 @@ def _design_parser() -> argparse.ArgumentParser:
     p.add_argument("--ray-address", default=None, metavar="ADDR",
                    help="--executor ray: the cluster's head, 'auto' or host:port")
     p.add_argument("--force", action="store_true", help="replace a non-empty --out directory")
+    reproducible.add_cli_argument(p)
     return p
 
 
@@ -79,6 +81,8 @@ def main(argv: list[str] | None = None) -> int:
         return int(exc.code or 0)
     if args.candidates < 1:
         return _fail(f"--candidates must be >= 1, got {args.candidates}")
+    if args.xla_threads < 0:
+        return _fail(f"--xla-threads must be >= 0, got {args.xla_threads}")
     out: Path = args.out
     if out.exists() and not out.is_dir():
         return _fail(f"--out {out} exists and is not a directory")
@@ -104,6 +108,7 @@ def _run_design(args) -> int:
     from f2f_jax.sim.ray_executor import executor_from_cli
 
     mesh = load_mesh(args.mesh)
+    reproducible.reproducible_xla(args.xla_threads)  # before JAX starts: the same designs everywhere
     nets = _load_trained_nets(args.run_dir)
 
     import jax

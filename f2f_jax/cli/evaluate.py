@@ -39,6 +39,7 @@ from tqdm.auto import tqdm
 
 from f2f_jax import config
 from f2f_jax import tables as E
+from f2f_jax.cli import reproducible
 from f2f_jax.data import builtin_objects, held_out_objects
 from f2f_jax.designer import design
 from f2f_jax.errors import F2FError
@@ -116,6 +117,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-randemb", action="store_true", help="skip the RandEmb+FN row (slow on a CPU)")
     p.add_argument("--seed", type=int, default=0, help="built-in objects, RandEmb keys, position shifts")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    reproducible.add_cli_argument(p)
     ray_executor.add_cli_arguments(p)
     return p
 
@@ -335,6 +337,9 @@ def main(argv=None) -> int:
     error, tables, extras = _check(args)
     if error:
         return _fail(error)
+    if args.xla_threads < 0:
+        return _fail(f"--xla-threads must be >= 0, got {args.xla_threads}")
+    reproducible.reproducible_xla(args.xla_threads)  # before JAX computes: the same designs everywhere
     try:
         ray_executor.executor_from_cli(args)
     except F2FError as exc:  # the extra missing, or no cluster at --ray-address
