@@ -12,13 +12,14 @@ from f2f_jax.cli import cotrain, reproducible
 # One convolution's kernel gradient: XLA's CPU pool splits its sums by thread count.
 _SCRIPT = r"""
 import hashlib, json, os, sys
+from f2f_jax.cli.reproducible import reproducible_xla
 mode = sys.argv[1]
 allowed = sorted(os.sched_getaffinity(0))
-if mode == "narrow":  # a 1-CPU machine
+if mode == "narrow":  # a 1-CPU machine, with the same XLA flags as the others (AVX2 code)
     os.sched_setaffinity(0, allowed[:1])
+    reproducible_xla(0)
 else:
-    from f2f_jax.cli.reproducible import reproducible_xla
-    pool = reproducible_xla(int(mode))
+    reproducible_xla(int(mode))
 import jax, jax.numpy as jnp, numpy as np
 x = jnp.asarray(np.random.default_rng(0).normal(size=(8, 24, 24, 24, 4)).astype(np.float32))
 k = jnp.asarray(np.random.default_rng(1).normal(size=(3, 3, 3, 4, 4)).astype(np.float32))
