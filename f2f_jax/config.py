@@ -163,6 +163,8 @@ class NetConfig:
     decoder_seed_size: int = 4
     decoder_channels: tuple[int, ...] = (64, 64, 32, 16, 8, 4, 2, 1, 1, 1, 1)
     decoder_strides: tuple[int, ...] = (1, 1, 3, 1, 1, 1, 1, 1, 1, 1, 1)
+    # Kernel edge of each transposed convolution; empty: 3 for every layer (paper).
+    decoder_kernels: tuple[int, ...] = ()
     generator_fc: tuple[int, ...] = (2096, 4096)
     # Fitness ResNet: one stride-2 conv per stage (the first 5^3, pad 2), then fitness_blocks
     # residual blocks at that width; a last stride-2 conv at the last width: 120x40x40 -> 1x1x1.

@@ -112,10 +112,12 @@ def expected_counts(cfg) -> dict[str, int]:
         dec += _dense_bn(n, width)
         n = width
     c = cfg.decoder_fc[-1] // cfg.decoder_seed_size ** 3
-    for width in cfg.decoder_channels[:-1]:
-        dec += _conv_bn(c, width)
+    kernels = cfg.decoder_kernels or (3,) * len(cfg.decoder_channels)
+    for width, k in zip(cfg.decoder_channels[:-1], kernels):
+        dec += _conv_bn(c, width, k)
         c = width
-    dec += 27 * c * cfg.decoder_channels[-1] + cfg.decoder_channels[-1]  # output layer: bias, no BN
+    # output layer: bias, no BN
+    dec += kernels[-1] ** 3 * c * cfg.decoder_channels[-1] + cfg.decoder_channels[-1]
     gen, n = 0, lat
     for width in cfg.generator_fc:
         gen += _dense_bn(n, width)
@@ -296,16 +298,32 @@ def test_fold_depth_conv_matches_3d_conv(kernel, stride, padding):
     np.testing.assert_allclose(conv3d(x, w, stride, padding), ref, rtol=1e-4, atol=1e-4)
 
 
-@pytest.mark.parametrize("stride", [1, 2, 3])
-def test_transpose_conv_matches_lax(stride):
+@pytest.mark.parametrize("kernel,stride", [(3, 1), (3, 2), (3, 3), (7, 3), (4, 3), (5, 2)])
+def test_transpose_conv_matches_lax(kernel, stride):
+    # (3, 1): a padded convolution; (3, 3): one block per voxel; the rest: one convolution per
+    # output phase
     x = jax.random.normal(jax.random.key(0), (2, 4, 5, 3, 3))
-    m = VolumeConvTranspose(2, 3, stride)
+    m = VolumeConvTranspose(2, kernel, stride)
     variables = m.init(jax.random.key(1), x)
     ref = jax.lax.conv_transpose(x, variables["params"]["kernel"], (stride,) * 3, "VALID",
                                  dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
     out = m.apply(variables, x)
-    assert out.shape == (2, 3 * stride + 3, 4 * stride + 3, 2 * stride + 3, 2)  # (n - 1) s + k
+    k = kernel
+    assert out.shape == (2, 3 * stride + k, 4 * stride + k, 2 * stride + k, 2)  # (n - 1) s + k
     np.testing.assert_allclose(out, ref, rtol=1e-4, atol=1e-4)
+    # training sees the gradients: both routes give lax's, for the input and the kernel
+    w = jax.random.normal(jax.random.key(2), out.shape)
+
+    def ours(x, kern):
+        return jnp.sum(m.apply({"params": {"kernel": kern}}, x) * w)
+
+    def theirs(x, kern):
+        return jnp.sum(jax.lax.conv_transpose(x, kern, (stride,) * 3, "VALID",
+                                              dimension_numbers=("NDHWC", "DHWIO", "NDHWC")) * w)
+
+    kern = variables["params"]["kernel"]
+    for got, want in zip(jax.grad(ours, (0, 1))(x, kern), jax.grad(theirs, (0, 1))(x, kern)):
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
 
 
 def test_volume_conv_bias_and_shape():

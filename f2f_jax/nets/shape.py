@@ -140,14 +140,40 @@ class VolumeConv(nn.Module):
         return y
 
 
+def _phase_conv_transpose(x: jax.Array, kernel: jax.Array, s: int) -> jax.Array:
+    """VALID transposed convolution of stride ``s`` and any cube kernel, as one convolution at the
+    input's resolution and a depth-to-space reshape (the same values as ``lax.conv_transpose``).
+
+    Output voxel ``s m + r`` (per axis) sums ``x[m - t] V[s t + r]`` over ``t`` in ``0..q-1``,
+    ``q = ceil(k / s)``, where ``V`` is the flipped kernel padded with zeros to ``s q``: for each
+    phase ``r`` that is a VALID correlation of ``x`` padded by ``q - 1`` with a ``q^3`` kernel, so
+    all ``s^3`` phases are one convolution with ``s^3 x out`` channels.  XLA's own transposed
+    convolution first dilates the input with ``s - 1`` zeros between voxels and correlates the
+    ``k^3`` kernel over it: ``s^3`` times the multiplications, most of them by zero.
+    """
+    k, c_in, c_out = kernel.shape[0], kernel.shape[3], kernel.shape[4]
+    q = -(-k // s)
+    v = jnp.pad(kernel[::-1, ::-1, ::-1], [(0, s * q - k)] * 3 + [(0, 0), (0, 0)])
+    # [a = s t + r per axis] -> [t, r] per axis, t reversed: correlation order
+    v = v.reshape(q, s, q, s, q, s, c_in, c_out)[::-1, :, ::-1, :, ::-1]
+    phases = jnp.transpose(v, (0, 2, 4, 6, 1, 3, 5, 7)).reshape(q, q, q, c_in, s ** 3 * c_out)
+    z = conv3d(x, phases, 1, q - 1)  # [B, D + q - 1, H + q - 1, W + q - 1, (r_d, r_h, r_w, out)]
+    b, md, mh, mw = z.shape[:4]
+    z = z.reshape(b, md, mh, mw, s, s, s, c_out).transpose(0, 1, 4, 2, 5, 3, 6, 7)
+    z = z.reshape(b, md * s, mh * s, mw * s, c_out)
+    d, h, w = ((n - 1) * s + k for n in x.shape[1:4])
+    return z[:, :d, :h, :w]
+
+
 class VolumeConvTranspose(nn.Module):
     """Transposed 3D convolution without padding (VALID): edge n -> (n - 1) * stride + kernel.
 
     Computes what ``jax.lax.conv_transpose(x, kernel, strides, "VALID")`` (and so
-    ``flax.linen.ConvTranspose(padding="VALID")``) computes, with two cheaper cases that cover the
-    paper's decoder: stride 1 is a convolution with ``kernel - 1`` voxels of zero padding, and
-    stride == kernel (no overlap) writes one k^3 block per input voxel, a matrix product and a
-    reshape.  Parameters: ``kernel`` [k, k, k, in, out], optional ``bias``.
+    ``flax.linen.ConvTranspose(padding="VALID")``) computes, by cheaper routes: stride 1 is a
+    convolution with ``kernel - 1`` voxels of zero padding; stride == kernel (no overlap) writes
+    one k^3 block per input voxel, a matrix product and a reshape; any other stride is one
+    convolution per output phase at the input's resolution (``_phase_conv_transpose``).
+    Parameters: ``kernel`` [k, k, k, in, out], optional ``bias``.
     """
 
     features: int
@@ -170,8 +196,7 @@ class VolumeConvTranspose(nn.Module):
             y = jnp.einsum("bdhwi,xyzio->bdxhywzo", x, kernel[::-1, ::-1, ::-1])
             y = y.reshape(b, d * k, h * k, w * k, self.features)
         else:
-            y = jax.lax.conv_transpose(x, kernel, (s,) * 3, "VALID",
-                                       dimension_numbers=("NDHWC", "DHWIO", "NDHWC"))
+            y = _phase_conv_transpose(x, kernel, s)
         if self.use_bias:
             y = y + self.param("bias", nn.initializers.zeros, (self.features,), jnp.float32).astype(
                 self.dtype)
@@ -187,11 +212,14 @@ def valid_conv_sizes(size: int, strides: tuple[int, ...], kernel: int = 3) -> li
     return sizes
 
 
-def valid_transpose_sizes(size: int, strides: tuple[int, ...], kernel: int = 3) -> list[int]:
-    """Edge lengths after each VALID transposed convolution: ``n -> (n - 1) s + k``."""
+def valid_transpose_sizes(size: int, strides: tuple[int, ...], kernel: int | tuple[int, ...] = 3
+                          ) -> list[int]:
+    """Edge lengths after each VALID transposed convolution: ``n -> (n - 1) s + k`` (``kernel``:
+    one size for all layers or one per layer)."""
+    kernels = (kernel,) * len(strides) if isinstance(kernel, int) else tuple(kernel)
     sizes = []
-    for s in strides:
-        size = (size - 1) * s + kernel
+    for s, k in zip(strides, kernels):
+        size = (size - 1) * s + k
         sizes.append(size)
     return sizes
 
@@ -253,7 +281,12 @@ class ShapeDecoder(Net):
     def output_sizes(self) -> list[int]:
         """Edge length of the volume after each transposed convolution (last one must be 40)."""
         cfg = self.config
-        return valid_transpose_sizes(cfg.decoder_seed_size, cfg.decoder_strides)
+        return valid_transpose_sizes(cfg.decoder_seed_size, cfg.decoder_strides, self.kernels())
+
+    def kernels(self) -> tuple[int, ...]:
+        """Kernel edge of each transposed convolution (``decoder_kernels``; empty: all 3)."""
+        cfg = self.config
+        return tuple(cfg.decoder_kernels) or (3,) * len(cfg.decoder_strides)
 
     @nn.compact
     def __call__(self, latent: jax.Array, *, train: bool) -> jax.Array:
@@ -280,6 +313,12 @@ class ShapeDecoder(Net):
         if len(cfg.decoder_strides) != len(cfg.decoder_channels):
             raise ValueError(f"decoder_strides {cfg.decoder_strides} and decoder_channels "
                              f"{cfg.decoder_channels} differ in length")
+        if cfg.decoder_kernels and len(cfg.decoder_kernels) != len(cfg.decoder_strides):
+            raise ValueError(f"decoder_kernels {cfg.decoder_kernels} and decoder_strides "
+                             f"{cfg.decoder_strides} differ in length")
+        if any(k < s for k, s in zip(self.kernels(), cfg.decoder_strides)):
+            raise ValueError(f"decoder_kernels {self.kernels()} must be at least their strides "
+                             f"{cfg.decoder_strides} (shorter kernels leave gaps)")
         if cfg.decoder_channels[-1] != 1:
             raise ValueError(f"decoder_channels must end with 1 (one TSDF channel), got "
                              f"{cfg.decoder_channels}")
@@ -290,14 +329,15 @@ class ShapeDecoder(Net):
         x = dense_layers(latent.astype(self.dtype), cfg.decoder_fc, cfg, train, self.dtype)
         x = x.reshape(x.shape[0], seed, seed, seed, seed_channels)
         n_layers = len(cfg.decoder_channels)
-        for i, (channels, stride) in enumerate(zip(cfg.decoder_channels, cfg.decoder_strides)):
+        layers = zip(cfg.decoder_channels, cfg.decoder_strides, self.kernels())
+        for i, (channels, stride, kernel) in enumerate(layers):
             if i < n_layers - 1:
-                x = VolumeConvTranspose(channels, 3, stride, dtype=self.dtype)(x)
+                x = VolumeConvTranspose(channels, kernel, stride, dtype=self.dtype)(x)
                 x = nn.leaky_relu(batch_norm(cfg, train, self.dtype)(x), cfg.leaky_slope)
             else:
                 # the output layer's own bias sets the TSDF's level (mostly +1, outside); a
                 # BatchNorm here would first force every batch to zero mean and unit spread
-                x = VolumeConvTranspose(channels, 3, stride, use_bias=True, dtype=self.dtype)(x)
+                x = VolumeConvTranspose(channels, kernel, stride, use_bias=True, dtype=self.dtype)(x)
         return jnp.tanh(x[..., 0]).astype(jnp.float32)
 
 
