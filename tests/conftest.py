@@ -1,6 +1,13 @@
 """Shared fixtures: a few canonical shapes, made once per session."""
 
-import numpy as np
+from f2f_jax.cli.reproducible import reproducible_xla
+
+# Before anything starts JAX: the tests compute as the command-line tools do (AVX2 code, a 2-thread
+# XLA pool), so a run killed in a `cotrain.py` subprocess and resumed in a test process ends where
+# one never stopped ends, on an AVX-512 machine as on an AVX2 one.
+reproducible_xla()
+
+import numpy as np  # noqa: E402
 import pytest
 import trimesh
 
