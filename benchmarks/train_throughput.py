@@ -2,6 +2,8 @@
 
     python benchmarks/train_throughput.py                       # CPU-sized default config
     python benchmarks/train_throughput.py --config paper --batch 32 --json out.json   # on a GPU
+    python benchmarks/train_throughput.py --set "net.decoder_channels=(8, 4, 2, 1)" \
+        --set "net.decoder_strides=(3, 3, 1, 1)" --set "net.decoder_kernels=()"   # the old decoder
 
 Stages: shape VAE (ae), fitness net (fn), generator on imprint latents (gn_imprint) and generator
 against the fitness net (gn_fitness: decoder + fitness forward and backward).  Inputs are built-in
@@ -27,6 +29,8 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=5, help="timed steps per stage after the compile")
     p.add_argument("--stages", default="ae,fn,gn_imprint,gn_fitness")
     p.add_argument("--json", default=None, help="write the figures to this JSON file")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="change one config field, as in experiments/cotrain.py (repeatable)")
     args = p.parse_args(argv)
 
     from f2f_jax import config
@@ -41,7 +45,10 @@ def main(argv=None) -> int:
         optimizer,
     )
 
-    cfg = config.get(args.config)
+    try:
+        cfg = config.override(config.get(args.config), args.set)
+    except ValueError as e:
+        p.error(str(e))
     batch = args.batch or cfg.train.fn_batch_size
     objs = np.stack([mesh_to_tsdf(m, cfg.geometry) for m in builtin_objects(min(batch, 8), seed=7)])
     objs = np.concatenate([objs] * (batch // len(objs) + 1))[:batch].astype(np.float32)
