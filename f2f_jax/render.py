@@ -22,8 +22,8 @@ from matplotlib.patches import Rectangle
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from f2f_jax.config import TRIAL_NAMES, GeometryConfig
-from f2f_jax.geometry import finger_pose, tsdf_to_mesh
 from f2f_jax.fileio import atomic_path
+from f2f_jax.geometry import finger_pose, tsdf_to_mesh
 
 OBJECT_COLOUR = (0.55, 0.58, 0.62)  # grey
 LEFT_COLOUR = (0.90, 0.62, 0.10)  # orange

@@ -2,8 +2,8 @@
 splits and the object set on disk.  The bottom layer beside ``geometry``: no simulator, no JAX.
 The grasp results live above the simulator, in ``f2f_jax.dataset``."""
 
-from f2f_jax.data.object_set import held_out_objects, load_or_make_objects, object_split
 from f2f_jax.data.families import FAMILIES, HOLLOW_FAMILIES
+from f2f_jax.data.object_set import held_out_objects, load_or_make_objects, object_split
 from f2f_jax.data.objects import builtin_object, builtin_objects
 from f2f_jax.data.sources import (
     load_mesh,

@@ -11,8 +11,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from f2f_jax.data.sdf import (Sdf, box, capsule, cylinder, dot, ellipsoid, frustum, hex_prism, intersect,
-                              length, smooth_union, sphere, subtract, torus, union)
+from f2f_jax.data.sdf import (
+    Sdf,
+    box,
+    capsule,
+    cylinder,
+    dot,
+    ellipsoid,
+    frustum,
+    hex_prism,
+    intersect,
+    length,
+    smooth_union,
+    sphere,
+    subtract,
+    torus,
+    union,
+)
 
 
 @dataclass(frozen=True)

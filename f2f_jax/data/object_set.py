@@ -13,8 +13,8 @@ from f2f_jax.config import GeometryConfig
 from f2f_jax.data.sources import object_source
 from f2f_jax.data.splits import load_split, make_split, save_split
 from f2f_jax.errors import MeshError
-from f2f_jax.geometry import mesh_to_tsdf
 from f2f_jax.fileio import atomic_path
+from f2f_jax.geometry import mesh_to_tsdf
 
 log = logging.getLogger(__name__)
 

@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 from pathlib import Path
+
 from f2f_jax.fileio import atomic_path
 
 
