@@ -298,6 +298,27 @@ def test_fold_depth_conv_matches_3d_conv(kernel, stride, padding):
     np.testing.assert_allclose(conv3d(x, w, stride, padding), ref, rtol=1e-4, atol=1e-4)
 
 
+def test_decoder_kernels_old_checkpoints_and_bad_tails():
+    """A config saved before ``decoder_kernels`` existed decodes as it did (3^3 kernels, 40
+    voxels); kernel lists that do not fit the strides are refused before any work."""
+    import dataclasses
+
+    from f2f_jax.train.checkpoint import config_from_dict, config_to_dict
+
+    saved = config_to_dict(config.default())
+    saved["net"].update(decoder_channels=[8, 4, 2, 1], decoder_strides=[3, 3, 1, 1])
+    del saved["net"]["decoder_kernels"]  # the first default, as its run directories hold it
+    old = config_from_dict(saved).net
+    dec = ShapeDecoder(old)
+    assert dec.kernels() == (3, 3, 3, 3) and dec.output_sizes() == [12, 36, 38, 40]
+    assert ShapeDecoder(config.default().net).output_sizes() == [13, 40]
+    z = jnp.zeros((1, old.latent_dim))
+    for kernels, words in (((4,), "differ in length"), ((2, 4), "at least their strides")):
+        bad = dataclasses.replace(config.tiny().net, decoder_kernels=kernels)
+        with pytest.raises(ValueError, match=words):
+            ShapeDecoder(bad).init(jax.random.key(0), z[:, :bad.latent_dim], train=False)
+
+
 @pytest.mark.parametrize("kernel,stride", [(3, 1), (3, 2), (3, 3), (7, 3), (4, 3), (5, 2)])
 def test_transpose_conv_matches_lax(kernel, stride):
     # (3, 1): a padded convolution; (3, 3): one block per voxel; the rest: one convolution per
