@@ -259,3 +259,10 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     assert gain["ci_low"] <= gain["diff"] <= gain["ci_high"]
     printed = capsys.readouterr().out
     assert "paired over objects" in printed and "Design pool: where the verified picks" in printed
+    # the seed table reads what evaluate.py wrote: one run given twice has no spread
+    from f2f_jax.cli import seed_table
+    assert seed_table.main([str(out), str(out / "results.json"), "--labels", "a,b",
+                            "--out", str(tmp_path / "seeds")]) == 0
+    md = (tmp_path / "seeds" / "table1_seeds.md").read_text()
+    imprint = next(line for line in md.splitlines() if line.startswith("| Imprint | ours"))
+    assert imprint.count("± 0.0") == 13 and "| Fit2Form + search (1, verify) | " in md

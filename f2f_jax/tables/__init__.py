@@ -7,7 +7,8 @@ prints).  Not to be confused with ``sim.evaluate``, the simulator call the table
     t1.write("runs/eval", "table1")               # table1.md (ours beside the paper), .csv, .png
 
 ``paper``: the paper's figures and Table 2's conditions; ``designers``: the rows as callables;
-``table``: Tables 1 and 2 simulated and written; ``stats``: fitness ranking, neighbourhoods, gains.
+``table``: Tables 1 and 2 simulated and written; ``stats``: fitness ranking, neighbourhoods, gains;
+``seeds``: the tables of several runs (seeds) as mean ± sd, each row against a reference row.
 """
 
 from f2f_jax.tables.designers import (
@@ -34,6 +35,7 @@ from f2f_jax.tables.paper import (
     TABLE2_CONDITIONS,
     Condition,
 )
+from f2f_jax.tables.seeds import SeedTable, combine_results, load_results
 from f2f_jax.tables.stats import (
     candidate_outcomes,
     fitness_ranking,
@@ -45,9 +47,10 @@ from f2f_jax.tables.table import Table, position_offsets, prepare_objects, table
 
 __all__ = [
     "OBJECTIVE_ROWS", "PAPER_OBJECTS", "PAPER_TABLE1", "PAPER_TABLE2", "ROBUSTNESS", "STABILITY",
-    "TABLE1_COLUMNS", "TABLE2_COLUMNS", "TABLE2_CONDITIONS", "Condition", "Design", "Designer", "Table",
-    "candidate_outcomes", "fitness_ranking", "imprint_designer", "make_designs", "nets_designer",
-    "neighbourhood_stats", "objects_array", "pair_designer", "paired_gain", "position_offsets",
-    "prepare_objects", "random_embedding_designer", "ranking_stats", "table1", "table1_values", "table2",
-    "wsg50_designer", "wsg_fmf_designer",
+    "TABLE1_COLUMNS", "TABLE2_COLUMNS", "TABLE2_CONDITIONS", "Condition", "Design", "Designer",
+    "SeedTable", "Table", "candidate_outcomes", "combine_results", "fitness_ranking",
+    "imprint_designer", "load_results", "make_designs", "neighbourhood_stats", "nets_designer",
+    "objects_array", "pair_designer", "paired_gain", "position_offsets", "prepare_objects",
+    "random_embedding_designer", "ranking_stats", "table1", "table1_values", "table2", "wsg50_designer",
+    "wsg_fmf_designer",
 ]

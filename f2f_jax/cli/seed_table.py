@@ -1,0 +1,67 @@
+"""Tables 1 and 2 over several runs: mean ± sd per cell, each row against a reference row.
+
+    python experiments/seed_table.py runs/s0/eval runs/s1/eval runs/s2/eval --out runs/seeds
+    python experiments/seed_table.py runs/s*/eval --labels "seed 0,seed 1,seed 2" --versus Imprint
+
+Each argument is an ``experiments/evaluate.py`` output (its --out directory, default RUN_DIR/eval,
+or the results.json in it).  Rows are matched by name across runs, so name every run's ``--extra``
+rows alike.  Writes table1_seeds.{md,csv,png} (and table2_seeds.* where the runs have Table 2)
+into --out and prints the markdown.  Reads only what evaluate.py wrote: no simulation, no JAX.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from f2f_jax.tables.seeds import combine_results, load_results
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("results", nargs="+", help="evaluate.py output directories (or results.json files)")
+    p.add_argument("--labels", default=None,
+                   help="comma-separated run labels, one per result (default: the directories' names)")
+    p.add_argument("--versus", default="Imprint",
+                   help="row every other row is compared with, run by run ('' for none; default Imprint)")
+    p.add_argument("--out", default=None,
+                   help="where to write the tables (default: print only)")
+    args = p.parse_args(argv)
+    paths = [Path(r) for r in args.results]
+    if args.labels is not None:
+        labels = [s.strip() for s in args.labels.split(",")]
+        if len(labels) != len(paths):
+            p.error(f"--labels gives {len(labels)} labels for {len(paths)} results")
+    else:
+        labels = [_label(path) for path in paths]
+    try:
+        tables = combine_results([load_results(path) for path in paths], labels)
+    except (FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    versus = args.versus or None
+    for kind, table in tables.items():
+        if versus is not None and versus not in table.values:
+            print(f"error: {kind} has no row {versus!r} to compare with (rows: "
+                  f"{', '.join(table.rows())}); pass --versus ROW or --versus ''", file=sys.stderr)
+            return 1
+    for table in tables.values():
+        print(table.to_markdown(versus))
+        if args.out:
+            written = table.write(args.out, versus)
+            print(f"wrote {', '.join(str(v) for v in written.values())}", file=sys.stderr)
+    return 0
+
+
+def _label(path: Path) -> str:
+    """A run's label from its path: the run directory's name for RUN_DIR/eval (or its
+    results.json), else the directory's own name."""
+    path = path.expanduser().resolve()
+    if path.name == "results.json":
+        path = path.parent
+    return path.parent.name if path.name == "eval" else path.name
+
+
+if __name__ == "__main__":
+    sys.exit(main())

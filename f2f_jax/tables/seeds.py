@@ -1,0 +1,251 @@
+"""Tables 1 and 2 over several runs (seeds): every figure as mean ± spread, and each row against a
+reference row run by run.
+
+One co-training run is one draw of training randomness and of held-out objects: the default run's
+held-out grasp success moved by 0.3 between seeds (benchmarks/RESULTS.md), so a row of one run
+says little.  ``experiments/evaluate.py`` writes ``results.json`` per run; this module reads
+several and combines them:
+
+    tables = combine_results([load_results(d) for d in dirs], labels=["seed 0", "seed 1", "seed 2"])
+    tables["table1"].to_markdown(versus="Imprint")   # mean ± sd per cell, then row - Imprint
+
+A run's rows are matched by name (name ``--extra`` rows the same way in every run); a row that
+some runs lack is averaged over the runs that have it and says how many.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from f2f_jax.fileio import atomic_path
+from f2f_jax.tables import paper as figures
+
+KINDS = ("table1", "table2")
+_TITLES = {"table1": "Table 1: grasp success, stability and robustness (%)",
+           "table2": "Table 2: grasp success under perturbed system parameters (%)"}
+_PAPER = {"table1": figures.PAPER_TABLE1, "table2": figures.PAPER_TABLE2}
+_COLUMNS = {"table1": figures.TABLE1_COLUMNS, "table2": figures.TABLE2_COLUMNS}
+# Table 1's row-against-row comparison: the summary columns, and the mean of the ten stability and
+# robustness trials (where imprints do not max out, issue 18's test of Fit2Form against Imprint).
+SR_MEAN = "S+R mean"
+_VERSUS_COLUMNS = {"table1": ("grasp", "S avg", "R avg", SR_MEAN), "table2": figures.TABLE2_COLUMNS}
+
+
+def _cell(values: Mapping[str, float], column: str) -> float:
+    if column == SR_MEAN:
+        trials = figures.STABILITY + figures.ROBUSTNESS
+        return float(np.mean([values[c] for c in trials]))
+    return values[column]
+
+
+def load_results(path) -> dict:
+    """``results.json`` of one ``experiments/evaluate.py`` run: ``path`` is the file or the
+    directory holding it (the run's ``--out``, default ``RUN_DIR/eval``)."""
+    path = Path(path).expanduser()
+    file = path / "results.json" if path.is_dir() else path
+    if not file.exists():
+        raise FileNotFoundError(f"{file}: no results.json there; run experiments/evaluate.py "
+                                "(its --out, default RUN_DIR/eval) first")
+    try:
+        results = json.loads(file.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{file}: not a results.json of experiments/evaluate.py ({exc})") from None
+    if not isinstance(results, dict) or not any(k in results for k in KINDS):
+        raise ValueError(f"{file}: holds neither table1 nor table2 (was evaluate.py run with "
+                         "--tables 1 or 2?)")
+    return results
+
+
+@dataclass
+class SeedTable:
+    """One table over several runs.
+
+    kind: "table1" or "table2"; columns: value columns; labels: one per run; values: {row: [None
+    or {column: percent}] one entry per run}; objects: objects evaluated per run.
+    """
+
+    kind: str
+    columns: tuple[str, ...]
+    labels: list[str]
+    values: dict[str, list[dict[str, float] | None]]
+    objects: list[int]
+
+    def rows(self) -> list[str]:
+        """The paper's rows first (its order), then the others as the runs list them."""
+        paper = [n for n in _PAPER[self.kind] if n in self.values]
+        return paper + [n for n in self.values if n not in paper]
+
+    def per_run(self, row: str, column: str) -> np.ndarray:
+        """[runs that have ``row``] percent values of one cell."""
+        return np.array([v[column] for v in self.values[row] if v is not None], np.float64)
+
+    def stats(self, row: str, column: str) -> dict[str, float]:
+        """mean, sd (sample standard deviation over runs; 0 for one run), min, max, runs."""
+        x = self.per_run(row, column)
+        return {"mean": float(x.mean()), "sd": float(x.std(ddof=1)) if len(x) > 1 else 0.0,
+                "min": float(x.min()), "max": float(x.max()), "runs": len(x)}
+
+    def versus(self, row: str, reference: str, column: str) -> dict[str, float] | None:
+        """``row`` minus ``reference`` in one column (or ``SR_MEAN``), run by run (runs having
+        both): mean, sd, min, max, runs, at_least (runs where the row is >= the reference).  None
+        when no run has both."""
+        diffs = [_cell(a, column) - _cell(b, column) for a, b in zip(self.values[row], self.values[reference])
+                 if a is not None and b is not None]
+        if not diffs:
+            return None
+        d = np.array(diffs, np.float64)
+        return {"mean": float(d.mean()), "sd": float(d.std(ddof=1)) if len(d) > 1 else 0.0,
+                "min": float(d.min()), "max": float(d.max()), "runs": len(d),
+                "at_least": int((d >= 0).sum())}
+
+    # -- writers ------------------------------------------------------------------------------
+    def _headers(self) -> list[str]:
+        if self.kind == "table1":
+            return ["Grasp", *figures.STABILITY, "S avg", *(f"{c[1:]}°" for c in figures.ROBUSTNESS),
+                    "R avg"]
+        return list(self.columns)
+
+    def to_markdown(self, versus: str | None = None) -> str:
+        """Mean ± sd over runs per cell (the paper's figure beneath, where it has the row), then,
+        with ``versus``, every row minus that row, run by run, as mean ± sd and how many runs the
+        row was at least as good."""
+        n = len(self.labels)
+        lines = [f"### {_TITLES[self.kind]}: mean ± sd over {n} runs", "",
+                 "Runs: " + ", ".join(f"{label} ({k} objects)" for label, k in
+                                      zip(self.labels, self.objects)), ""]
+        head = ["designer", "source", *self._headers(), "runs"]
+        lines += ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(head) - 2)) + "|"]
+        paper = _PAPER[self.kind]
+        for row in self.rows():
+            cells = [self.stats(row, c) for c in self.columns]
+            lines.append(f"| {row} | ours | " + " | ".join(f"{s['mean']:.1f} ± {s['sd']:.1f}" for s in cells)
+                         + f" | {cells[0]['runs']} |")
+            if row in paper:
+                lines.append("| | paper | " + " | ".join(f"{paper[row][c]:.1f}" for c in self.columns)
+                             + " | – |")
+        if versus is not None:
+            if versus not in self.values:
+                raise KeyError(f"no row {versus!r} to compare with; rows: {', '.join(self.rows())}")
+            columns = _VERSUS_COLUMNS[self.kind]
+            lines += ["", f"Each row minus {versus}, run by run, in points (mean ± sd; in brackets "
+                      f"the runs where the row is at least as good; {SR_MEAN}: the mean of the ten "
+                      "stability and robustness trials):" if self.kind == "table1" else
+                      f"Each row minus {versus}, run by run, in points (mean ± sd; in brackets the "
+                      "runs where the row is at least as good):", "",
+                      "| designer | " + " | ".join(columns) + " |",
+                      "|---|" + "|".join(["---:"] * len(columns)) + "|"]
+            for row in self.rows():
+                if row == versus:
+                    continue
+                cells = [self.versus(row, versus, c) for c in columns]
+                lines.append(f"| {row} | " + " | ".join(
+                    "–" if d is None else f"{d['mean']:+.1f} ± {d['sd']:.1f} ({d['at_least']}/{d['runs']})"
+                    for d in cells) + " |")
+        return "\n".join(lines) + "\n"
+
+    def to_csv(self) -> str:
+        """One line per (row, statistic): mean, sd, min, max and each run's value by label."""
+        buf = io.StringIO()
+        writer = csv.writer(buf, lineterminator="\n")
+        writer.writerow(["table", "designer", "statistic", *self.columns, "runs"])
+        for row in self.rows():
+            cells = [self.stats(row, c) for c in self.columns]
+            for stat in ("mean", "sd", "min", "max"):
+                writer.writerow([self.kind, row, stat, *(f"{s[stat]:.2f}" for s in cells), cells[0]["runs"]])
+            for label, v in zip(self.labels, self.values[row]):
+                if v is not None:
+                    writer.writerow([self.kind, row, label, *(f"{v[c]:.2f}" for c in self.columns), 1])
+        return buf.getvalue()
+
+    def plot(self, path) -> Path:
+        """Bars of the mean over runs (table1: grasp, S avg, R avg; table2: every condition),
+        each run's value as a dot, the paper's figure as a black tick."""
+        from matplotlib import colormaps
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        groups = ["grasp", "S avg", "R avg"] if self.kind == "table1" else list(self.columns)
+        names = self.rows()
+        fig = Figure(figsize=(max(6.0, 1.1 * len(names) * max(1, len(groups) / 3) + 3), 4.2), dpi=110)
+        FigureCanvasAgg(fig)
+        ax = fig.add_subplot(1, 1, 1)
+        width = 0.8 / max(1, len(groups))
+        x = np.arange(len(names))
+        colours = colormaps["tab10"]
+        paper = _PAPER[self.kind]
+        for k, col in enumerate(groups):
+            xs = x - 0.4 + width * (k + 0.5)
+            means = [self.stats(n, col)["mean"] for n in names]
+            sds = [self.stats(n, col)["sd"] for n in names]
+            ax.bar(xs, means, width * 0.95, yerr=sds, capsize=2, label=col, color=colours(k % 10),
+                   error_kw=dict(lw=0.8))
+            for xk, n in zip(xs, names):
+                runs = self.per_run(n, col)
+                ax.scatter(np.full(len(runs), xk), runs, s=6, color="0.25", zorder=3)
+            ticks = [(xk, paper[n][col]) for xk, n in zip(xs, names) if n in paper]
+            if ticks:
+                px, py = zip(*ticks)
+                ax.scatter(px, py, marker="_", s=120, color="black", zorder=4,
+                           label="paper" if k == 0 else None)
+        ax.set_xticks(x)
+        ax.set_xticklabels(names, rotation=15 if len(names) > 4 else 0, fontsize=8)
+        ax.set_ylim(0, 105)
+        ax.set_ylabel("% of objects")
+        ax.set_title(f"{'Table 1' if self.kind == 'table1' else 'Table 2: grasp success'}: mean ± sd "
+                     f"over {len(self.labels)} runs (dots: runs; black ticks: paper)", fontsize=9)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+        ax.grid(axis="y", alpha=0.3)
+        fig.tight_layout()
+        path = Path(path)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png")
+        return path
+
+    def write(self, directory, versus: str | None = None) -> dict[str, Path]:
+        """``<kind>_seeds.md``, ``.csv`` and ``.png`` in ``directory``, each written atomically."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        stem = f"{self.kind}_seeds"
+        paths = {"md": directory / f"{stem}.md", "csv": directory / f"{stem}.csv"}
+        with atomic_path(paths["md"]) as tmp:
+            tmp.write_text(self.to_markdown(versus), encoding="utf-8")
+        with atomic_path(paths["csv"]) as tmp:
+            tmp.write_text(self.to_csv(), encoding="utf-8")
+        paths["png"] = self.plot(directory / f"{stem}.png")
+        return paths
+
+
+def combine_results(results: Sequence[Mapping], labels: Sequence[str] | None = None) -> dict[str, SeedTable]:
+    """{kind: SeedTable} for each table that at least one run holds.
+
+    results: ``load_results`` of each run; labels: one per run (default "run 1", "run 2", ...).
+    A run without a table contributes nothing to it; a table's rows are those of any run.
+    """
+    if not results:
+        raise ValueError("no runs to combine")
+    labels = list(labels) if labels is not None else [f"run {i + 1}" for i in range(len(results))]
+    if len(labels) != len(results):
+        raise ValueError(f"{len(labels)} labels for {len(results)} runs")
+    tables = {}
+    for kind in KINDS:
+        have = [(label, r) for label, r in zip(labels, results) if kind in r]
+        if not have:
+            continue
+        columns = _COLUMNS[kind]
+        values: dict[str, list] = {}
+        for i, (label, r) in enumerate(have):
+            for row, cells in r[kind]["values"].items():
+                missing = [c for c in columns if c not in cells]
+                if missing:
+                    raise ValueError(f"{label}: {kind} row {row!r} lacks columns {missing}")
+                values.setdefault(row, [None] * len(have))[i] = {c: float(cells[c]) for c in columns}
+        tables[kind] = SeedTable(kind=kind, columns=columns, labels=[label for label, _ in have],
+                                 values=values, objects=[int(r.get("objects", 0)) for _, r in have])
+    return tables

@@ -1,0 +1,112 @@
+"""Tables over several runs (f2f_jax.tables.seeds, experiments/seed_table.py): mean ± sd per
+cell, rows matched by name, each row against a reference run by run."""
+
+import json
+
+import numpy as np
+import pytest
+
+from f2f_jax.cli import seed_table as cli
+from f2f_jax.tables import PAPER_TABLE2, ROBUSTNESS, STABILITY, TABLE1_COLUMNS, TABLE2_COLUMNS
+from f2f_jax.tables.seeds import SR_MEAN, combine_results, load_results
+
+
+def _row(level: float, step: float = 0.0) -> dict:
+    return {c: level + step * i for i, c in enumerate(TABLE1_COLUMNS)}
+
+
+def _results(rows: dict, objects: int = 13, table2: dict | None = None) -> dict:
+    out = {"objects": objects, "table1": {"values": rows, "feasible": {k: 1.0 for k in rows}}}
+    if table2 is not None:
+        out["table2"] = {"values": table2}
+    return out
+
+
+def _write(directory, results: dict):
+    directory.mkdir(parents=True)
+    (directory / "results.json").write_text(json.dumps(results))
+    return directory
+
+
+def test_mean_sd_and_rows_missing_from_some_runs():
+    runs = [_results({"Imprint": _row(90), "Fit2Form": _row(70)}),
+            _results({"Imprint": _row(80), "Fit2Form GS": _row(60)}),
+            _results({"Imprint": _row(85), "Fit2Form": _row(76)}, objects=61)]
+    t = combine_results(runs, ["s0", "s1", "s2"])["table1"]
+    assert t.objects == [13, 13, 61]
+    s = t.stats("Imprint", "grasp")
+    assert s["mean"] == pytest.approx(85.0) and s["sd"] == pytest.approx(5.0)  # sample sd of 90, 80, 85
+    assert (s["min"], s["max"], s["runs"]) == (80.0, 90.0, 3)
+    assert t.stats("Fit2Form", "R avg")["runs"] == 2 and t.stats("Fit2Form GS", "S1")["sd"] == 0.0
+    assert t.rows()[:3] == ["Imprint", "Fit2Form GS", "Fit2Form"]  # the paper's order first
+    md = t.to_markdown()
+    assert "| Imprint | ours | 85.0 ± 5.0 |" in md and "| Fit2Form GS | ours | 60.0 ± 0.0 |" in md
+    assert "s2 (61 objects)" in md
+
+
+def test_versus_pairs_runs_and_counts_the_ones_at_least_as_good():
+    sr = STABILITY + ROBUSTNESS
+    imprint = [_row(90), _row(80)]
+    ours = [dict(_row(70), **{c: 92.0 for c in sr}), dict(_row(85), **{c: 70.0 for c in sr})]
+    t = combine_results([_results({"Imprint": a, "Fit2Form": b}) for a, b in zip(imprint, ours)])["table1"]
+    g = t.versus("Fit2Form", "Imprint", "grasp")
+    assert g["mean"] == pytest.approx(-7.5) and g["at_least"] == 1 and g["runs"] == 2
+    d = t.versus("Fit2Form", "Imprint", SR_MEAN)  # 92 - 90 in run 1, 70 - 80 in run 2
+    assert d["mean"] == pytest.approx(-4.0) and d["sd"] == pytest.approx(np.std([2.0, -10.0], ddof=1))
+    assert d["at_least"] == 1
+    md = t.to_markdown(versus="Imprint")
+    assert "| Fit2Form | -7.5 ± " in md and "(1/2)" in md
+    with pytest.raises(KeyError, match="no row 'WSG50'"):
+        t.to_markdown(versus="WSG50")
+
+
+def test_table2_and_runs_without_it():
+    t2 = {"Imprint": {c: 50.0 + i for i, c in enumerate(TABLE2_COLUMNS)}}
+    tables = combine_results([_results({"Imprint": _row(90)}, table2=t2), _results({"Imprint": _row(80)})],
+                             ["a", "b"])
+    assert tables["table1"].labels == ["a", "b"] and tables["table2"].labels == ["a"]
+    md = tables["table2"].to_markdown()
+    paper = PAPER_TABLE2["Imprint"][TABLE2_COLUMNS[0]]
+    assert f"| | paper | {paper:.1f} |" in md and "| Imprint | ours | 50.0 ± 0.0 | 51.0 ± 0.0 |" in md
+
+
+def test_bad_inputs_are_refused_clearly(tmp_path):
+    with pytest.raises(ValueError, match="no runs"):
+        combine_results([])
+    with pytest.raises(ValueError, match="2 labels for 1 runs"):
+        combine_results([_results({"Imprint": _row(1)})], ["a", "b"])
+    broken = _row(1)
+    del broken["S3"]
+    with pytest.raises(ValueError, match=r"row 'Imprint' lacks columns \['S3'\]"):
+        combine_results([_results({"Imprint": broken})])
+    with pytest.raises(FileNotFoundError, match="run experiments/evaluate.py"):
+        load_results(tmp_path)
+    (tmp_path / "results.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not a results.json"):
+        load_results(tmp_path)
+    (tmp_path / "results.json").write_text(json.dumps({"objects": 3}))
+    with pytest.raises(ValueError, match="neither table1 nor table2"):
+        load_results(tmp_path / "results.json")
+
+
+def test_cli_writes_the_tables_and_labels_runs_by_their_directories(tmp_path, capsys):
+    a = _write(tmp_path / "s0" / "eval", _results({"Imprint": _row(90), "Fit2Form": _row(70)}))
+    b = _write(tmp_path / "s1" / "eval", _results({"Imprint": _row(80), "Fit2Form": _row(74)}))
+    out = tmp_path / "seeds"
+    assert cli.main([str(a), str(b), "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "Runs: s0 (13 objects), s1 (13 objects)" in printed and "Each row minus Imprint" in printed
+    assert {p.name for p in out.iterdir()} == {"table1_seeds.md", "table1_seeds.csv", "table1_seeds.png"}
+    lines = (out / "table1_seeds.csv").read_text().splitlines()
+    assert lines[0].startswith("table,designer,statistic,grasp,S1")
+    assert "table1,Fit2Form,mean,72.00," in "\n".join(lines)
+    assert any(line.startswith("table1,Fit2Form,s1,74.00,") for line in lines)
+    # wrong label count, unknown reference row, a missing run: clear errors, nothing written
+    with pytest.raises(SystemExit):
+        cli.main([str(a), str(b), "--labels", "x"])
+    assert "--labels gives 1 labels for 2 results" in capsys.readouterr().err
+    assert cli.main([str(a), "--versus", "WSG50"]) == 1
+    assert "no row 'WSG50'" in capsys.readouterr().err
+    assert cli.main([str(a), str(tmp_path / "missing")]) == 1
+    assert "no results.json" in capsys.readouterr().err
+    assert cli.main([str(a), "--versus", ""]) == 0 and "Each row minus" not in capsys.readouterr().out
