@@ -110,3 +110,44 @@ def test_cli_writes_the_tables_and_labels_runs_by_their_directories(tmp_path, ca
     assert cli.main([str(a), str(tmp_path / "missing")]) == 1
     assert "no results.json" in capsys.readouterr().err
     assert cli.main([str(a), "--versus", ""]) == 0 and "Each row minus" not in capsys.readouterr().out
+
+
+def test_held_out_and_fresh_objects_are_recounted_from_the_outcomes(tmp_path, capsys):
+    from f2f_jax.tables import table1_values
+
+    rng = np.random.default_rng(0)
+    names = ["builtin/0001_mug", "builtin/0002_cup", "fresh/builtin/0000_tube", "fresh/builtin/0001_box",
+             "fresh/builtin/0002_nut"]
+    runs = []
+    for _ in range(2):
+        out = {row: rng.integers(0, 2, (5, 11)).astype(np.uint8) for row in ("Imprint", "Fit2Form")}
+        runs.append({"objects": 5, "names": names,
+                     "table1": {"values": {k: table1_values(v) for k, v in out.items()},
+                                "outcomes": {k: ["".join(map(str, o)) for o in v] for k, v in out.items()}},
+                     "_raw": out})
+    held = combine_results(runs, ["a", "b"], objects="held-out")["table1"]
+    fresh = combine_results(runs, ["a", "b"], objects="fresh")["table1"]
+    assert held.objects == [2, 2] and fresh.objects == [3, 3] and fresh.subset == "fresh"
+    for i, r in enumerate(runs):
+        assert held.values["Fit2Form"][i] == pytest.approx(table1_values(r["_raw"]["Fit2Form"][:2]))
+        assert fresh.values["Imprint"][i] == pytest.approx(table1_values(r["_raw"]["Imprint"][2:]))
+    # the object-weighted mean of the two subsets is the whole table
+    whole = combine_results(runs, ["a", "b"])["table1"]
+    both = (2 * held.per_run("Imprint", "R avg") + 3 * fresh.per_run("Imprint", "R avg")) / 5
+    np.testing.assert_allclose(both, whole.per_run("Imprint", "R avg"))
+    assert "fresh objects only" in fresh.to_markdown()
+    # a run without fresh objects drops out of the fresh table; runs without outcomes are refused
+    only_held = dict(runs[0], names=names[:2], objects=2,
+                     table1=dict(runs[0]["table1"], outcomes={k: v[:2] for k, v in
+                                                              runs[0]["table1"]["outcomes"].items()}))
+    assert combine_results([only_held, runs[1]], ["a", "b"], objects="fresh")["table1"].labels == ["b"]
+    assert combine_results([only_held], objects="fresh") == {}
+    with pytest.raises(ValueError, match="keeps no per-object table1 outcomes"):
+        combine_results([_results({"Imprint": _row(1)})], objects="fresh")
+    with pytest.raises(ValueError, match="objects must be one of"):
+        combine_results(runs, objects="train")
+    a = _write(tmp_path / "a", {k: v for k, v in only_held.items() if k != "_raw"})
+    assert cli.main([str(a), "--objects", "fresh"]) == 1
+    assert "none of the runs evaluated fresh objects" in capsys.readouterr().err
+    assert cli.main([str(a), "--objects", "held-out", "--out", str(tmp_path / "o")]) == 0
+    assert (tmp_path / "o" / "table1_seeds_held-out.md").exists()

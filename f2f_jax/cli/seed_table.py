@@ -5,8 +5,10 @@
 
 Each argument is an ``experiments/evaluate.py`` output (its --out directory, default RUN_DIR/eval,
 or the results.json in it).  Rows are matched by name across runs, so name every run's ``--extra``
-rows alike.  Writes table1_seeds.{md,csv,png} (and table2_seeds.* where the runs have Table 2)
-into --out and prints the markdown.  Reads only what evaluate.py wrote: no simulation, no JAX.
+rows alike.  --objects held-out or fresh recounts every row on the runs' own held-out objects or
+on the new ones of ``evaluate.py --fresh``.  Writes table1_seeds.{md,csv,png} (and table2_seeds.*
+where the runs have Table 2) into --out and prints the markdown.  Reads only what evaluate.py
+wrote: nothing is simulated.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from f2f_jax.tables.seeds import combine_results, load_results
+from f2f_jax.tables.seeds import OBJECT_SUBSETS, combine_results, load_results
 
 
 def main(argv=None) -> int:
@@ -25,6 +27,9 @@ def main(argv=None) -> int:
                    help="comma-separated run labels, one per result (default: the directories' names)")
     p.add_argument("--versus", default="Imprint",
                    help="row every other row is compared with, run by run ('' for none; default Imprint)")
+    p.add_argument("--objects", choices=OBJECT_SUBSETS, default="all",
+                   help="all the objects each run evaluated (default), only the run's held-out ones, "
+                        "or only the new ones of evaluate.py --fresh")
     p.add_argument("--out", default=None,
                    help="where to write the tables (default: print only)")
     args = p.parse_args(argv)
@@ -36,9 +41,12 @@ def main(argv=None) -> int:
     else:
         labels = [_label(path) for path in paths]
     try:
-        tables = combine_results([load_results(path) for path in paths], labels)
+        tables = combine_results([load_results(path) for path in paths], labels, objects=args.objects)
     except (FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 1
+    if not tables:
+        print(f"error: none of the runs evaluated {args.objects} objects", file=sys.stderr)
         return 1
     versus = args.versus or None
     for kind, table in tables.items():

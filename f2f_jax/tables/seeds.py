@@ -10,7 +10,9 @@ several and combines them:
     tables["table1"].to_markdown(versus="Imprint")   # mean ± sd per cell, then row - Imprint
 
 A run's rows are matched by name (name ``--extra`` rows the same way in every run); a row that
-some runs lack is averaged over the runs that have it and says how many.
+some runs lack is averaged over the runs that have it and says how many.  ``objects="held-out"``
+or ``"fresh"`` recounts every row on the run's own held-out objects or on the new ones that
+``evaluate.py --fresh`` added (named ``fresh/...``), from the per-object outcomes results.json keeps.
 """
 
 from __future__ import annotations
@@ -26,12 +28,15 @@ import numpy as np
 
 from f2f_jax.fileio import atomic_path
 from f2f_jax.tables import paper as figures
+from f2f_jax.tables.table import table1_values
 
 KINDS = ("table1", "table2")
 _TITLES = {"table1": "Table 1: grasp success, stability and robustness (%)",
            "table2": "Table 2: grasp success under perturbed system parameters (%)"}
 _PAPER = {"table1": figures.PAPER_TABLE1, "table2": figures.PAPER_TABLE2}
 _COLUMNS = {"table1": figures.TABLE1_COLUMNS, "table2": figures.TABLE2_COLUMNS}
+OBJECT_SUBSETS = ("all", "held-out", "fresh")
+_FRESH = "fresh/"  # evaluate.py's prefix for the objects --fresh adds
 # Table 1's row-against-row comparison: the summary columns, and the mean of the ten stability and
 # robustness trials (where imprints do not max out, issue 18's test of Fit2Form against Imprint).
 SR_MEAN = "S+R mean"
@@ -68,7 +73,8 @@ class SeedTable:
     """One table over several runs.
 
     kind: "table1" or "table2"; columns: value columns; labels: one per run; values: {row: [None
-    or {column: percent}] one entry per run}; objects: objects evaluated per run.
+    or {column: percent}] one entry per run}; objects: objects counted per run; subset: which of
+    each run's objects ("all", "held-out" or "fresh").
     """
 
     kind: str
@@ -76,6 +82,7 @@ class SeedTable:
     labels: list[str]
     values: dict[str, list[dict[str, float] | None]]
     objects: list[int]
+    subset: str = "all"
 
     def rows(self) -> list[str]:
         """The paper's rows first (its order), then the others as the runs list them."""
@@ -117,7 +124,8 @@ class SeedTable:
         with ``versus``, every row minus that row, run by run, as mean ± sd and how many runs the
         row was at least as good."""
         n = len(self.labels)
-        lines = [f"### {_TITLES[self.kind]}: mean ± sd over {n} runs", "",
+        which = "" if self.subset == "all" else f", {self.subset} objects only"
+        lines = [f"### {_TITLES[self.kind]}: mean ± sd over {n} run{'s' * (n != 1)}{which}", "",
                  "Runs: " + ", ".join(f"{label} ({k} objects)" for label, k in
                                       zip(self.labels, self.objects)), ""]
         head = ["designer", "source", *self._headers(), "runs"]
@@ -198,8 +206,9 @@ class SeedTable:
         ax.set_xticklabels(names, rotation=15 if len(names) > 4 else 0, fontsize=8)
         ax.set_ylim(0, 105)
         ax.set_ylabel("% of objects")
+        which = "" if self.subset == "all" else f", {self.subset} objects"
         ax.set_title(f"{'Table 1' if self.kind == 'table1' else 'Table 2: grasp success'}: mean ± sd "
-                     f"over {len(self.labels)} runs (dots: runs; black ticks: paper)", fontsize=9)
+                     f"over {len(self.labels)} run{'s' * (len(self.labels) != 1)}{which} (dots: runs; black ticks: paper)", fontsize=9)
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         ax.grid(axis="y", alpha=0.3)
         fig.tight_layout()
@@ -209,10 +218,11 @@ class SeedTable:
         return path
 
     def write(self, directory, versus: str | None = None) -> dict[str, Path]:
-        """``<kind>_seeds.md``, ``.csv`` and ``.png`` in ``directory``, each written atomically."""
+        """``<kind>_seeds.md``, ``.csv`` and ``.png`` in ``directory`` (``<kind>_seeds_fresh.*``
+        and ``<kind>_seeds_held-out.*`` for a subset), each written atomically."""
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        stem = f"{self.kind}_seeds"
+        stem = f"{self.kind}_seeds" + ("" if self.subset == "all" else f"_{self.subset}")
         paths = {"md": directory / f"{stem}.md", "csv": directory / f"{stem}.csv"}
         with atomic_path(paths["md"]) as tmp:
             tmp.write_text(self.to_markdown(versus), encoding="utf-8")
@@ -222,12 +232,18 @@ class SeedTable:
         return paths
 
 
-def combine_results(results: Sequence[Mapping], labels: Sequence[str] | None = None) -> dict[str, SeedTable]:
+def combine_results(results: Sequence[Mapping], labels: Sequence[str] | None = None, *,
+                    objects: str = "all") -> dict[str, SeedTable]:
     """{kind: SeedTable} for each table that at least one run holds.
 
-    results: ``load_results`` of each run; labels: one per run (default "run 1", "run 2", ...).
-    A run without a table contributes nothing to it; a table's rows are those of any run.
+    results: ``load_results`` of each run; labels: one per run (default "run 1", "run 2", ...);
+    objects: "all" (the tables as evaluate.py printed them), "held-out" or "fresh" (every row
+    recounted on those objects from the per-object outcomes; a run with none of them is left out
+    of that table).  A run without a table contributes nothing to it; a table's rows are those
+    of any run.
     """
+    if objects not in OBJECT_SUBSETS:
+        raise ValueError(f"objects must be one of {OBJECT_SUBSETS}, got {objects!r}")
     if not results:
         raise ValueError("no runs to combine")
     labels = list(labels) if labels is not None else [f"run {i + 1}" for i in range(len(results))]
@@ -235,17 +251,48 @@ def combine_results(results: Sequence[Mapping], labels: Sequence[str] | None = N
         raise ValueError(f"{len(labels)} labels for {len(results)} runs")
     tables = {}
     for kind in KINDS:
-        have = [(label, r) for label, r in zip(labels, results) if kind in r]
+        have = []
+        for label, r in zip(labels, results):
+            if kind in r:
+                rows, n = _table_values(r, kind, objects, label)
+                if n:
+                    have.append((label, rows, n))
         if not have:
             continue
         columns = _COLUMNS[kind]
         values: dict[str, list] = {}
-        for i, (label, r) in enumerate(have):
-            for row, cells in r[kind]["values"].items():
+        for i, (label, rows, _) in enumerate(have):
+            for row, cells in rows.items():
                 missing = [c for c in columns if c not in cells]
                 if missing:
                     raise ValueError(f"{label}: {kind} row {row!r} lacks columns {missing}")
                 values.setdefault(row, [None] * len(have))[i] = {c: float(cells[c]) for c in columns}
-        tables[kind] = SeedTable(kind=kind, columns=columns, labels=[label for label, _ in have],
-                                 values=values, objects=[int(r.get("objects", 0)) for _, r in have])
+        tables[kind] = SeedTable(kind=kind, columns=columns, labels=[label for label, *_ in have],
+                                 values=values, objects=[n for *_, n in have], subset=objects)
     return tables
+
+
+def _table_values(results: Mapping, kind: str, objects: str, label: str) -> tuple[dict, int]:
+    """({row: {column: percent}}, objects counted) of one run's table, on the chosen objects."""
+    table = results[kind]
+    if objects == "all":
+        return table["values"], int(results.get("objects", 0))
+    names = results.get("names")
+    per_object = table.get("outcomes" if kind == "table1" else "grasp")
+    if names is None or per_object is None:
+        raise ValueError(f"{label}: its results.json keeps no per-object {kind} outcomes to "
+                         f"recount on {objects} objects")
+    keep = np.array([n.startswith(_FRESH) == (objects == "fresh") for n in names])
+    if not keep.any():
+        return {}, 0
+
+    def bits(strings) -> np.ndarray:
+        arr = np.array([[int(ch) for ch in s] for s in strings], np.uint8)
+        if len(arr) != len(names):
+            raise ValueError(f"{label}: {kind} has outcomes of {len(arr)} objects for {len(names)} names")
+        return arr[keep]
+
+    if kind == "table1":
+        return {row: table1_values(bits(out)) for row, out in per_object.items()}, int(keep.sum())
+    return ({row: {c: 100.0 * float(bits(cells[c]).mean()) for c in _COLUMNS[kind]}
+             for row, cells in per_object.items()}, int(keep.sum()))
