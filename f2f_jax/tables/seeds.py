@@ -28,7 +28,7 @@ import numpy as np
 
 from f2f_jax.fileio import atomic_path
 from f2f_jax.tables import paper as figures
-from f2f_jax.tables.table import table1_values
+from f2f_jax.tables.table import save_bar_chart, table1_values
 
 KINDS = ("table1", "table2")
 _TITLES = {"table1": "Table 1: grasp success, stability and robustness (%)",
@@ -202,20 +202,11 @@ class SeedTable:
                 px, py = zip(*ticks)
                 ax.scatter(px, py, marker="_", s=120, color="black", zorder=4,
                            label="paper" if k == 0 else None)
-        ax.set_xticks(x)
-        ax.set_xticklabels(names, rotation=15 if len(names) > 4 else 0, fontsize=8)
-        ax.set_ylim(0, 105)
-        ax.set_ylabel("% of objects")
         which = "" if self.subset == "all" else f", {self.subset} objects"
-        ax.set_title(f"{'Table 1' if self.kind == 'table1' else 'Table 2: grasp success'}: mean ± sd "
-                     f"over {len(self.labels)} run{'s' * (len(self.labels) != 1)}{which} (dots: runs; black ticks: paper)", fontsize=9)
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-        ax.grid(axis="y", alpha=0.3)
-        fig.tight_layout()
-        path = Path(path)
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png")
-        return path
+        n = len(self.labels)
+        title = (f"{'Table 1' if self.kind == 'table1' else 'Table 2: grasp success'}: mean ± sd over "
+                 f"{n} run{'s' * (n != 1)}{which} (dots: runs; black ticks: paper)")
+        return save_bar_chart(fig, ax, names, title, path)
 
     def write(self, directory, versus: str | None = None) -> dict[str, Path]:
         """``<kind>_seeds.md``, ``.csv`` and ``.png`` in ``directory`` (``<kind>_seeds_fresh.*``

@@ -151,19 +151,9 @@ class Table:
                 px, py = zip(*paper)
                 ax.scatter(px, py, marker="_", s=120, color="black", zorder=3,
                            label="paper" if k == 0 else None)
-        ax.set_xticks(x)
-        ax.set_xticklabels(names, rotation=15 if len(names) > 4 else 0, fontsize=8)
-        ax.set_ylim(0, 105)
-        ax.set_ylabel("% of objects")
-        ax.set_title(("Table 1" if self.kind == "table1" else "Table 2: grasp success") +
-                     f" ({self.n_objects} objects; black ticks: paper)", fontsize=9)
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-        ax.grid(axis="y", alpha=0.3)
-        fig.tight_layout()
-        path = Path(path)
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png")
-        return path
+        title = (("Table 1" if self.kind == "table1" else "Table 2: grasp success") +
+                 f" ({self.n_objects} objects; black ticks: paper)")
+        return save_bar_chart(fig, ax, names, title, path)
 
     def write(self, directory, stem: str | None = None) -> dict[str, Path]:
         """Write ``<stem>.md``, ``<stem>.csv`` and ``<stem>.png`` (stem default: the kind) into
@@ -177,6 +167,23 @@ class Table:
             tmp.write_text(self.to_csv(), encoding="utf-8")
         paths["png"] = self.plot(directory / f"{stem}.png")
         return paths
+
+
+def save_bar_chart(fig, ax, names: Sequence[str], title: str, path) -> Path:
+    """Finish a table's grouped bar chart (one group per row ``names``, percent axis, legend
+    outside) and write it as a PNG to ``path`` atomically."""
+    ax.set_xticks(np.arange(len(names)))
+    ax.set_xticklabels(names, rotation=15 if len(names) > 4 else 0, fontsize=8)
+    ax.set_ylim(0, 105)
+    ax.set_ylabel("% of objects")
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    return path
 
 
 def table1_values(outcomes: np.ndarray) -> dict[str, float]:
