@@ -28,11 +28,9 @@ import numpy as np
 
 from f2f_jax.fileio import atomic_path
 from f2f_jax.tables import paper as figures
-from f2f_jax.tables.table import save_bar_chart, table1_values
+from f2f_jax.tables.table import TITLES, column_headers, save_bar_chart, table1_values
 
 KINDS = ("table1", "table2")
-_TITLES = {"table1": "Table 1: grasp success, stability and robustness (%)",
-           "table2": "Table 2: grasp success under perturbed system parameters (%)"}
 _PAPER = {"table1": figures.PAPER_TABLE1, "table2": figures.PAPER_TABLE2}
 _COLUMNS = {"table1": figures.TABLE1_COLUMNS, "table2": figures.TABLE2_COLUMNS}
 OBJECT_SUBSETS = ("all", "held-out", "fresh")
@@ -48,6 +46,12 @@ def _cell(values: Mapping[str, float], column: str) -> float:
         trials = figures.STABILITY + figures.ROBUSTNESS
         return float(np.mean([values[c] for c in trials]))
     return values[column]
+
+
+def _summary(x: np.ndarray) -> dict[str, float]:
+    """mean, sd (sample standard deviation; 0 for one value), min, max and count of [n] values."""
+    return {"mean": float(x.mean()), "sd": float(x.std(ddof=1)) if len(x) > 1 else 0.0,
+            "min": float(x.min()), "max": float(x.max()), "runs": len(x)}
 
 
 def load_results(path) -> dict:
@@ -95,9 +99,7 @@ class SeedTable:
 
     def stats(self, row: str, column: str) -> dict[str, float]:
         """mean, sd (sample standard deviation over runs; 0 for one run), min, max, runs."""
-        x = self.per_run(row, column)
-        return {"mean": float(x.mean()), "sd": float(x.std(ddof=1)) if len(x) > 1 else 0.0,
-                "min": float(x.min()), "max": float(x.max()), "runs": len(x)}
+        return _summary(self.per_run(row, column))
 
     def versus(self, row: str, reference: str, column: str) -> dict[str, float] | None:
         """``row`` minus ``reference`` in one column (or ``SR_MEAN``), run by run (runs having
@@ -108,16 +110,9 @@ class SeedTable:
         if not diffs:
             return None
         d = np.array(diffs, np.float64)
-        return {"mean": float(d.mean()), "sd": float(d.std(ddof=1)) if len(d) > 1 else 0.0,
-                "min": float(d.min()), "max": float(d.max()), "runs": len(d),
-                "at_least": int((d >= 0).sum())}
+        return {**_summary(d), "at_least": int((d >= 0).sum())}
 
     # -- writers ------------------------------------------------------------------------------
-    def _headers(self) -> list[str]:
-        if self.kind == "table1":
-            return ["Grasp", *figures.STABILITY, "S avg", *(f"{c[1:]}°" for c in figures.ROBUSTNESS),
-                    "R avg"]
-        return list(self.columns)
 
     def to_markdown(self, versus: str | None = None) -> str:
         """Mean ± sd over runs per cell (the paper's figure beneath, where it has the row), then,
@@ -125,10 +120,10 @@ class SeedTable:
         row was at least as good."""
         n = len(self.labels)
         which = "" if self.subset == "all" else f", {self.subset} objects only"
-        lines = [f"### {_TITLES[self.kind]}: mean ± sd over {n} run{'s' * (n != 1)}{which}", "",
+        lines = [f"### {TITLES[self.kind]}: mean ± sd over {n} run{'s' * (n != 1)}{which}", "",
                  "Runs: " + ", ".join(f"{label} ({k} objects)" for label, k in
                                       zip(self.labels, self.objects)), ""]
-        head = ["designer", "source", *self._headers(), "runs"]
+        head = ["designer", "source", *column_headers(self.kind, self.columns), "runs"]
         lines += ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] * 2 + ["---:"] * (len(head) - 2)) + "|"]
         paper = _PAPER[self.kind]
         for row in self.rows():

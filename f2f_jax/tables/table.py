@@ -34,6 +34,17 @@ log = logging.getLogger(__name__)
 
 
 
+TITLES = {"table1": "Table 1: grasp success, stability and robustness (%)",
+          "table2": "Table 2: grasp success under perturbed system parameters (%)"}
+
+
+def column_headers(kind: str, columns: Sequence[str]) -> list[str]:
+    """A table's value columns as its markdown header names them (Table 1's turns in degrees)."""
+    if kind == "table1":
+        return ["Grasp", *figures.STABILITY, "S avg", *(f"{c[1:]}°" for c in figures.ROBUSTNESS), "R avg"]
+    return list(columns)
+
+
 @dataclass
 class Table:
     """One evaluation table: our figures beside the paper's.
@@ -62,17 +73,12 @@ class Table:
         return list(self.paper) + [name for name in self.values if name not in self.paper]
 
     # -- writers ------------------------------------------------------------------------------
-    def _headers(self) -> list[str]:
-        if self.kind == "table1":
-            return ["Grasp", *figures.STABILITY, "S avg", *(f"{c[1:]}°" for c in figures.ROBUSTNESS), "R avg"]
-        return list(self.columns)
 
     def to_markdown(self) -> str:
         """A markdown table: per designer an "ours" line and a "paper" line ("not run" where we
         did not evaluate the row, "not in paper" for our extra rows)."""
-        title = ("Table 1: grasp success, stability and robustness (%)" if self.kind == "table1"
-                 else "Table 2: grasp success under perturbed system parameters (%)")
-        head = ["designer", "source", *self._headers(), "feasible", "objects"]
+        title = TITLES[self.kind]
+        head = ["designer", "source", *column_headers(self.kind, self.columns), "feasible", "objects"]
         lines = [f"### {title}", "", "| " + " | ".join(head) + " |",
                  "|" + "|".join(["---"] * 2 + ["---:"] * (len(head) - 2)) + "|"]
         dash = ["–"] * (len(self.columns) - 1)
