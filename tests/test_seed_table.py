@@ -151,3 +151,30 @@ def test_held_out_and_fresh_objects_are_recounted_from_the_outcomes(tmp_path, ca
     assert "none of the runs evaluated fresh objects" in capsys.readouterr().err
     assert cli.main([str(a), "--objects", "held-out", "--out", str(tmp_path / "o")]) == 0
     assert (tmp_path / "o" / "table1_seeds_held-out.md").exists()
+
+
+def test_rows_evaluated_later_merge_into_their_run_by_label():
+    names = ["builtin/0001_mug", "fresh/builtin/0000_tube"]
+    imprint, f2f, gs = (np.array(o, np.uint8) for o in ([[1] * 11, [1] * 6 + [0] * 5],
+                                                          [[1] * 11, [1] * 11], [[0] * 11, [1] * 11]))
+
+    def run(**rows):
+        from f2f_jax.tables import table1_values
+        return {"objects": 2, "names": names,
+                "table1": {"values": {k: table1_values(v) for k, v in rows.items()},
+                           "outcomes": {k: ["".join(map(str, o)) for o in v] for k, v in rows.items()}}}
+
+    first, later = run(Imprint=imprint, Fit2Form=f2f), run(Imprint=imprint, **{"Fit2Form GS": gs})
+    t = combine_results([first, run(Imprint=imprint, Fit2Form=gs), later], ["s0", "s1", "s0"])["table1"]
+    assert t.labels == ["s0", "s1"] and t.objects == [2, 2]
+    assert t.stats("Fit2Form GS", "grasp") == pytest.approx({"mean": 50.0, "sd": 0.0, "min": 50.0,
+                                                             "max": 50.0, "runs": 1})
+    assert t.per_run("Fit2Form", "grasp").tolist() == [100.0, 50.0]
+    assert first["table1"]["values"].keys() == {"Imprint", "Fit2Form"}  # the inputs are left alone
+    fresh = combine_results([first, later], ["s0", "s0"], objects="fresh")["table1"]
+    assert fresh.per_run("Fit2Form GS", "S1").tolist() == [100.0]
+    # a shared row with other outcomes, or other objects, cannot belong to the same run
+    with pytest.raises(ValueError, match="row 'Imprint' differs"):
+        combine_results([first, run(Imprint=gs)], ["s0", "s0"])
+    with pytest.raises(ValueError, match="evaluated different objects"):
+        combine_results([first, dict(later, names=names[::-1])], ["s0", "s0"])

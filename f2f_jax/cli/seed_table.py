@@ -2,6 +2,8 @@
 
     python experiments/seed_table.py runs/s0/eval runs/s1/eval runs/s2/eval --out runs/seeds
     python experiments/seed_table.py runs/s*/eval --labels "seed 0,seed 1,seed 2" --versus Imprint
+    python experiments/seed_table.py runs/s0/eval runs/s1/eval runs/s1/eval-ablations \
+        --labels "seed 0,seed 1,seed 1"     # rows evaluated later join their run
 
 Each argument is an ``experiments/evaluate.py`` output (its --out directory, default RUN_DIR/eval,
 or the results.json in it).  Rows are matched by name across runs, so name every run's ``--extra``
@@ -24,7 +26,8 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("results", nargs="+", help="evaluate.py output directories (or results.json files)")
     p.add_argument("--labels", default=None,
-                   help="comma-separated run labels, one per result (default: the directories' names)")
+                   help="comma-separated run labels, one per result (default: the directories' names); "
+                        "results with the same label are one run's rows from several evaluate.py calls")
     p.add_argument("--versus", default="Imprint",
                    help="row every other row is compared with, run by run ('' for none; default Imprint)")
     p.add_argument("--objects", choices=OBJECT_SUBSETS, default="all",

@@ -35,7 +35,7 @@ from f2f_jax.tables.paper import (
     TABLE2_CONDITIONS,
     Condition,
 )
-from f2f_jax.tables.seeds import SeedTable, combine_results, load_results
+from f2f_jax.tables.seeds import SeedTable, combine_results, load_results, merge_results
 from f2f_jax.tables.stats import (
     candidate_outcomes,
     fitness_ranking,

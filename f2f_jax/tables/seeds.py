@@ -17,6 +17,7 @@ or ``"fresh"`` recounts every row on the run's own held-out objects or on the ne
 
 from __future__ import annotations
 
+import copy
 import csv
 import io
 import json
@@ -226,7 +227,8 @@ def combine_results(results: Sequence[Mapping], labels: Sequence[str] | None = N
     objects: "all" (the tables as evaluate.py printed them), "held-out" or "fresh" (every row
     recounted on those objects from the per-object outcomes; a run with none of them is left out
     of that table).  A run without a table contributes nothing to it; a table's rows are those
-    of any run.
+    of any run.  Results given the same label are one run evaluated in several calls: their rows
+    are united (``merge_results``).
     """
     if objects not in OBJECT_SUBSETS:
         raise ValueError(f"objects must be one of {OBJECT_SUBSETS}, got {objects!r}")
@@ -235,6 +237,11 @@ def combine_results(results: Sequence[Mapping], labels: Sequence[str] | None = N
     labels = list(labels) if labels is not None else [f"run {i + 1}" for i in range(len(results))]
     if len(labels) != len(results):
         raise ValueError(f"{len(labels)} labels for {len(results)} runs")
+    grouped: dict[str, list[Mapping]] = {}
+    for label, r in zip(labels, results):
+        grouped.setdefault(label, []).append(r)
+    labels = list(grouped)
+    results = [merge_results(group, label) for label, group in grouped.items()]
     tables = {}
     for kind in KINDS:
         have = []
@@ -256,6 +263,46 @@ def combine_results(results: Sequence[Mapping], labels: Sequence[str] | None = N
         tables[kind] = SeedTable(kind=kind, columns=columns, labels=[label for label, *_ in have],
                                  values=values, objects=[n for *_, n in have], subset=objects)
     return tables
+
+
+def merge_results(results: Sequence[Mapping], label: str = "run") -> dict:
+    """One run's results from several ``evaluate.py`` calls on the same objects (rows evaluated
+    later, e.g. an ablation trained after the first evaluation): their tables' rows united.
+
+    The calls must have evaluated the same objects in the same order (``names``), and a row that
+    two of them hold must have the same per-object outcomes (the simulator is deterministic, so
+    the baselines every call repeats agree); otherwise ValueError, as the rows would not be
+    comparable.
+    """
+    if not results:
+        raise ValueError(f"{label}: no results to merge")
+    merged = copy.deepcopy(dict(results[0]))
+    for r in results[1:]:
+        if r.get("names") != merged.get("names") or r.get("objects") != merged.get("objects"):
+            raise ValueError(f"{label}: results merged under one label evaluated different objects "
+                             f"({r.get('objects')} and {merged.get('objects')} objects, not the same list; run "
+                             "evaluate.py with the same --run-dir, --objects, --fresh and --seed)")
+        for kind in KINDS:
+            if kind not in r:
+                continue
+            if kind not in merged:
+                merged[kind] = copy.deepcopy(r[kind])
+                continue
+            into, table = merged[kind], r[kind]
+            per_object = "outcomes" if kind == "table1" else "grasp"
+            for row, cells in table["values"].items():
+                if row in into["values"]:
+                    same = (into.get(per_object, {}).get(row) == table.get(per_object, {}).get(row)
+                            and all(abs(into["values"][row].get(c, np.nan) - v) < 1e-9
+                                    for c, v in cells.items()))
+                    if not same:
+                        raise ValueError(f"{label}: {kind} row {row!r} differs between the results "
+                                         "merged under this label (different runs or objects?)")
+                    continue
+                into["values"][row] = dict(cells)
+                if per_object in table and row in table[per_object]:
+                    into.setdefault(per_object, {})[row] = table[per_object][row]
+    return merged
 
 
 def _table_values(results: Mapping, kind: str, objects: str, label: str) -> tuple[dict, int]:
