@@ -49,7 +49,7 @@ __all__ = [
     "OBJECTIVE_ROWS", "PAPER_OBJECTS", "PAPER_TABLE1", "PAPER_TABLE2", "ROBUSTNESS", "STABILITY",
     "TABLE1_COLUMNS", "TABLE2_COLUMNS", "TABLE2_CONDITIONS", "Condition", "Design", "Designer",
     "SeedTable", "Table", "candidate_outcomes", "combine_results", "fitness_ranking",
-    "imprint_designer", "load_results", "make_designs", "neighbourhood_stats", "nets_designer",
+    "imprint_designer", "load_results", "make_designs", "merge_results", "neighbourhood_stats", "nets_designer",
     "objects_array", "pair_designer", "paired_gain", "position_offsets", "prepare_objects",
     "random_embedding_designer", "ranking_stats", "table1", "table1_values", "table2", "wsg50_designer",
     "wsg_fmf_designer",
