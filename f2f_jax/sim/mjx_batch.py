@@ -344,7 +344,7 @@ class MjxGraspSimulator:
         unstable += bad
         steps += grasp_steps
         held = np.nonzero(ok)[0]
-        if len(held):
+        if len(held) and n_push:
             # pushes from each held candidate's post-grasp state
             idx = np.repeat(held, n_push)
             dirs = np.tile(np.asarray(s.stability_directions, np.float32), (len(held), 1))
@@ -353,7 +353,7 @@ class MjxGraspSimulator:
             outcome[held, 1: 1 + n_push] = pok.reshape(len(held), n_push)
             unstable[held] += pbad.reshape(len(held), n_push).sum(1)
             steps[held] += n_push * push_steps
-            # turned grasps
+        if len(held) and n_rob:  # turned grasps
             idx = np.repeat(held, n_rob)
             yaws = np.tile(np.deg2rad(np.asarray(s.robustness_angles_deg, np.float32)), len(held))
             rok, _, rbad, _, _ = run_program("grasp", idx, [yaws])

@@ -338,19 +338,21 @@ class WarpGraspSimulator:
         unstable += bad
         steps += self.grasp_steps
         held = np.nonzero(ok)[0]
-        if len(held):
+        if len(held) and n_push:
             idx = np.repeat(held, n_push)
             dirs = np.tile(np.asarray(s.stability_directions, np.float64), (len(held), 1))
             st = {k: v[idx] for k, v in state.items()}
             pok, _, pbad = self._push(models, table, idx, st, z_start[idx], dirs)
             outcome[held, 1: 1 + n_push] = pok.reshape(len(held), n_push)
             unstable[held] += pbad.reshape(len(held), n_push).sum(1)
+            steps[held] += n_push * self.push_steps
+        if len(held) and n_rob:  # turned grasps
             idx = np.repeat(held, n_rob)
             yaws = np.tile(np.deg2rad(np.asarray(s.robustness_angles_deg, np.float64)), len(held))
             rok, _, rbad, _, _ = self._grasp(models, table, idx, yaws, openers)
             outcome[held, 1 + n_push:] = rok.reshape(len(held), n_rob)
             unstable[held] += rbad.reshape(len(held), n_rob).sum(1)
-            steps[held] += n_push * self.push_steps + n_rob * self.grasp_steps
+            steps[held] += n_rob * self.grasp_steps
         if self.overflowed:
             log.warning("warp backend: %d worlds overflowed a buffer and were failed (broad-phase "
                         "pairs per world up to %.0f of %d slots)", self.overflowed,

@@ -12,6 +12,7 @@ reports its feasible fraction.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import hashlib
 import io
 import logging
@@ -51,7 +52,7 @@ class Table:
 
     kind: "table1" or "table2"; columns: value columns; values: {designer: {column: percent}};
     feasible: {designer: fraction of objects whose two fingers are both feasible};
-    outcomes: {designer: [N, 11] uint8} (table1) or {designer: [C, N, 11] uint8} (table2, one
+    outcomes: {designer: [N, 11] uint8} (table1) or {designer: [C, N, 1] uint8} (table2, one
     slice per condition); n_objects: objects evaluated; paper: the published figures
     (PAPER_TABLE1 / PAPER_TABLE2); design_seconds, sim_seconds: wall times; notes: what the
     reader must know (dropped objects, the counting rule).
@@ -239,6 +240,13 @@ def prepare_objects(objects, cfg: Config, *, object_hulls=None, cache_dir=None,
     return (objs[keep], hulls, notes, keep) if return_kept else (objs[keep], hulls, notes)
 
 
+def grasp_only(cfg: Config) -> Config:
+    """``cfg`` simulating the first grasp and lift only (no pushes, no turned grasps): outcome
+    vectors of length 1, whose one entry equals the full protocol's first (the grasp is
+    simulated first and the later trials start from it)."""
+    return cfg.replace(sim=dataclasses.replace(cfg.sim, stability_directions=(), robustness_angles_deg=()))
+
+
 def _simulate_designs(designs: dict[str, Design], objs, hulls, cfg, backend, progress,
                       object_xy=None, executor: str = "threads"):
     """One sim.evaluate call over every designer's pairs (threads stay busy).
@@ -322,8 +330,10 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
 
     The fingers are designed once for the nominal objects (the designer does not see the
     perturbation).  Shifts exist on the "mujoco" backend only: with a batched backend those
-    conditions run on "mujoco" (said in the notes).  ``Table.outcomes[name]`` is [C, N, 11];
-    ``feasible`` as in ``table1``; executor: as in ``sim.evaluate``.
+    conditions run on "mujoco" (said in the notes).  The table scores the first grasp only, so
+    only that trial is simulated (the pushes and turned grasps that follow a held grasp cannot
+    change it): ``Table.outcomes[name]`` is [C, N, 1]; ``feasible`` as in ``table1``; executor:
+    as in ``sim.evaluate``.
     """
     cfg = cfg or default()
     objs, hulls, notes = prepare_objects(objects, cfg, object_hulls=object_hulls,
@@ -341,7 +351,7 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
             notes.append(f"{cond.name}: simulated with plain MuJoCo (MJX places every object at "
                          "the grasp location)")
         out, feasible, sec, failed = _simulate_designs(
-            designs, objs, hulls, cond.config(cfg), cond_backend, progress,
+            designs, objs, hulls, grasp_only(cond.config(cfg)), cond_backend, progress,
             object_xy=position_offsets(len(objs), cond, seed), executor=executor)
         per_condition[cond.name] = out
         seconds += sec
