@@ -266,3 +266,12 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     md = (tmp_path / "seeds" / "table1_seeds.md").read_text()
     imprint = next(line for line in md.splitlines() if line.startswith("| Imprint | ours"))
     assert imprint.count("± 0.0") == 13 and "| Fit2Form + search (1, verify) | " in md
+    # the same command again takes up every row's finished outcomes: no row is designed or
+    # simulated for the table again, and the table and the pool's note come out the same
+    kept = sorted(p.name.split("-")[0] for p in (out / ".steps").iterdir())
+    assert kept and set(kept) == {"outcome"}  # the designs were dropped once results.json was written
+    assert cli.main(args) == 0
+    captured = capsys.readouterr()
+    assert "took up" in captured.err and "designing:" not in captured.err
+    assert json.loads((out / "results.json").read_text())["table1"] == res["table1"]
+    assert "Design pool: where the verified picks" in captured.out

@@ -174,6 +174,53 @@ def test_table2_has_the_papers_conditions(objects, hulls, tiny, t1):
     assert "| Imprint | ours |" in md and "| Fit2Form | ours | not run" in md and "88.9" in md
 
 
+def test_a_killed_table_resumes_with_the_rows_it_had_finished(objects, hulls, tiny, t1, tmp_path,
+                                                              monkeypatch):
+    """A StepStore keeps each row's outcomes as it ends: after a kill in the second row the same
+    table simulates only that row and comes out as if never stopped; a row whose recipe changed
+    is simulated again; designs are kept until ``finish``, outcomes after it."""
+    from f2f_jax import sim
+    from f2f_jax.tables import steps
+
+    designers = {"WSG50": E.wsg50_designer(tiny), "Imprint": E.imprint_designer(tiny)}
+    recipes = {"WSG50": "flat pads", "Imprint": "imprint"}
+
+    def store(**changed):
+        return steps.StepStore(tmp_path, steps.common_digest(objects, tiny, seed=0), {**recipes, **changed})
+
+    real, calls = sim.evaluate, []
+
+    def killed_in_the_second_row(*args, **kw):
+        calls.append(len(args[0]))
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*args, **kw)
+
+    monkeypatch.setattr(sim, "evaluate", killed_in_the_second_row)
+    kept = {k: steps.StoredDesigner(store(), k, d) for k, d in designers.items()}
+    with pytest.raises(KeyboardInterrupt):
+        E.table1(kept, objects, tiny, object_hulls=hulls, progress=False, store=store())
+    assert len(list((tmp_path / steps.DIRECTORY).glob("design-*.npz"))) == 2  # both rows designed
+    calls.clear()
+    monkeypatch.setattr(sim, "evaluate", lambda *a, **kw: (calls.append(len(a[0])), real(*a, **kw))[1])
+    again = E.table1(kept, objects, tiny, object_hulls=hulls, progress=False, store=store())
+    assert calls == [len(objects)]  # only the row the kill interrupted
+    for k in designers:
+        np.testing.assert_array_equal(again.outcomes[k], t1.outcomes[k])
+        assert again.feasible[k] == t1.feasible[k]
+    calls.clear()
+    E.table1(designers, objects, tiny, object_hulls=hulls, progress=False, store=store(Imprint="other"))
+    assert calls == [len(objects)]  # a changed recipe is another step
+    store().finish()
+    left = sorted(p.name.split("-")[0] for p in (tmp_path / steps.DIRECTORY).iterdir())
+    assert left == ["outcome"] * 3
+    # a step file cut short by a kill mid-write is not taken up, it is done again
+    store()._path("table1", "WSG50").write_bytes(b"PK\x03")
+    calls.clear()
+    E.table1(designers, objects, tiny, object_hulls=hulls, progress=False, store=store())
+    assert len(calls) == 1
+
+
 def test_network_designers_post_process_like_training(objects, tiny):
     """Randomly initialised nets: shapes, largest-component post-processing, and RandEmb+FN's
     determinism per object (its optimisation is exercised with 0 steps: a random fitness net is

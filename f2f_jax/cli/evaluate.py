@@ -21,6 +21,12 @@ each, all simulated, and the run's gain over each extra paired over objects with
 interval; --fresh N adds N never-seen built-in objects to the run's held-out ones.
 Writes table1.{md,csv,png}, table2.{md,csv,png} and results.json into --out (default DIR/eval,
 or runs/eval without a run) and prints the markdown.
+
+Nothing finished is lost to a kill: each row's designs and its outcomes in each table are saved in
+OUT/.steps as they end (``f2f_jax.tables.steps``), and the same command run again does only what
+is missing.  A command that adds rows (another --extra, --design-search, Table 2) reuses the rows
+already simulated with the same objects, settings and code; --no-resume starts afresh.  The
+designs are deleted once results.json is written; the outcomes (bytes per object) stay.
 """
 
 from __future__ import annotations
@@ -29,6 +35,7 @@ import argparse
 import collections
 import functools
 import json
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -46,6 +53,7 @@ from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import mesh_to_tsdf
 from f2f_jax.sim import ray_executor
+from f2f_jax.tables import steps
 from f2f_jax.train.checkpoint import config_from_dict, load_trained_nets
 
 
@@ -117,6 +125,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--no-randemb", action="store_true", help="skip the RandEmb+FN row (slow on a CPU)")
     p.add_argument("--seed", type=int, default=0, help="built-in objects, RandEmb keys, position shifts")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--no-resume", action="store_true",
+                   help="start afresh: delete the steps an earlier call saved in OUT/.steps instead of "
+                        "taking them up (by default a killed or extended evaluation continues)")
     reproducible.add_cli_argument(p)
     ray_executor.add_cli_arguments(p)
     return p
@@ -190,12 +201,23 @@ class _Rows:
     def __init__(self):
         self.designers, self.table2, self.notes = {}, [], []
         self.pool_origins = []  # FingerPair.origin of the design pool's picks, one per object
+        self.pool_name, self.store = None, None  # the pool row; the StepStore (set in main)
         self.ranked, self.generators = None, {}
+        # {row: what makes its fingers}: with the objects and config, names its saved steps
+        self.recipes: dict[str, str] = {}
+
+
+def _nets_recipe(nets) -> str:
+    """What a checkpoint's designs depend on: its nets' sizes and every parameter."""
+    from f2f_jax.tables.steps import tree_digest
+
+    return f"{nets.config.net!r} {tree_digest({'g': nets.generator, 'f': nets.fitness})}"
 
 
 def _baseline_rows(rows: _Rows, cfg) -> None:
     try:
         rows.designers["WSG50"] = E.wsg_fmf_designer(cfg)
+        rows.recipes["WSG50"] = "WSG-FMF fingers"
         rows.table2.append("WSG50")
         rows.notes.append("WSG50: Schunk's standard WSG-FMF fingers (the mesh pybullet_data ships; "
                           "faces meet at the object's mid-plane at full closure, as every finger "
@@ -205,6 +227,7 @@ def _baseline_rows(rows: _Rows, cfg) -> None:
         rows.notes.append(f"WSG50 (WSG-FMF fingers) not run: {exc}")
     rows.designers["Flat pads"] = E.wsg50_designer(cfg)
     rows.designers["Imprint"] = E.imprint_designer(cfg)
+    rows.recipes.update({"Flat pads": "flat pads", "Imprint": "imprint"})
     rows.table2.append("Imprint")
 
 
@@ -217,12 +240,18 @@ def _search_rows(rows: _Rows, nets, args) -> None:
     name = f"Fit2Form + search ({k}, verify)"  # the generator's candidates only
     rows.designers[name] = E.pair_designer(functools.partial(search, imprint=False), batched=True,
                                            desc=name)
+    recipe = _nets_recipe(nets)
+    rows.recipes[name] = f"search {k} without imprints, {recipe}"
     rows.table2.append(name)
     pool_name = f"Design pool ({k} + imprints, verify)"  # design()'s default with verify
+    rows.recipes[pool_name] = f"search {k} with imprints, {recipe}"
+    rows.pool_name = pool_name
 
     def pool(objs):
         pairs = search(objs, imprint=True)
-        rows.pool_origins.extend(pair.origin for pair in pairs)
+        rows.pool_origins = [pair.origin for pair in pairs]
+        if rows.store is not None:
+            rows.store.save("origins", pool_name, origins=np.array(rows.pool_origins))
         return pairs
 
     rows.designers[pool_name] = E.pair_designer(pool, batched=True, desc=pool_name)
@@ -243,7 +272,10 @@ def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
             rows.designers["RandEmb+FN"] = E.random_embedding_designer(
                 nets, jax.random.key(args.seed), samples=args.randemb_samples,
                 steps=args.randemb_steps)
+            rows.recipes["RandEmb+FN"] = (f"randemb {args.randemb_steps} steps {args.randemb_samples} "
+                                          f"samples seed {args.seed}, {_nets_recipe(nets)}")
         rows.designers[row] = E.nets_designer(nets)
+        rows.recipes[row] = f"generator, {_nets_recipe(nets)}"
         rows.table2.append(row)
         if args.design_search:
             _search_rows(rows, nets, args)
@@ -261,17 +293,38 @@ def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
             _say(f"--extra {name}: no usable checkpoint in {path} ({why}): row skipped")
             continue
         rows.designers[name] = E.nets_designer(nets_x)
+        rows.recipes[name] = f"generator, {_nets_recipe(nets_x)}"
         if rows.generators:
             rows.generators[name] = nets_x
 
 
-def _table_results(args, designs, rows: _Rows, objs, hulls, cfg, notes, tables,
+def _pool_note(rows: _Rows) -> None:
+    """The note on where the design pool's picks came from, once (from this call's search or,
+    when an earlier call made the pool, from the store)."""
+    if rows.pool_name is None or any(n.startswith("Design pool:") for n in rows.notes):
+        return
+    if not rows.pool_origins and rows.store is not None:
+        got = rows.store.load("origins", rows.pool_name)
+        rows.pool_origins = [str(o) for o in got["origins"]] if got is not None else []
+    if rows.pool_origins:
+        picks = ", ".join(f"{n} {origin}" for origin, n in
+                          collections.Counter(rows.pool_origins).most_common())
+        rows.notes.append(f"Design pool: where the verified picks of {len(rows.pool_origins)} objects "
+                          f"came from: {picks}")
+        _say(rows.notes[-1])
+
+
+def _table_results(args, designers, rows: _Rows, objs, hulls, cfg, notes, tables,
                    out_dir) -> tuple[dict, list]:
-    """Tables 1 and 2 as asked: their results.json entries and markdown."""
+    """Tables 1 and 2 as asked: their results.json entries (design_seconds included) and markdown."""
     results, printed, progress = {}, [], not args.quiet
-    kw = dict(backend=args.backend, progress=progress, object_hulls=hulls, executor=args.executor)
+    kw = dict(backend=args.backend, progress=progress, object_hulls=hulls, executor=args.executor,
+              store=rows.store, made={})
+    design_seconds = {}
     if 1 in tables:
-        t1 = E.table1(designs, objs, cfg, **kw)
+        t1 = E.table1(designers, objs, cfg, **kw)
+        design_seconds.update(t1.design_seconds)
+        _pool_note(rows)
         t1.notes[:0] = notes + rows.notes
         results["table1"] = {"values": t1.values, "feasible": t1.feasible,
                              "sim_seconds": round(t1.sim_seconds, 2),
@@ -280,7 +333,9 @@ def _table_results(args, designs, rows: _Rows, objs, hulls, cfg, notes, tables,
                              "files": {k: str(v) for k, v in t1.write(out_dir, "table1").items()}}
         printed.append(t1.to_markdown())
     if 2 in tables:
-        t2 = E.table2({k: designs[k] for k in rows.table2}, objs, cfg, seed=args.seed, **kw)
+        t2 = E.table2({k: designers[k] for k in rows.table2}, objs, cfg, seed=args.seed, **kw)
+        design_seconds.update(t2.design_seconds)
+        _pool_note(rows)
         t2.notes[:0] = notes + rows.notes
         results["table2"] = {"values": t2.values, "feasible": t2.feasible,
                              "sim_seconds": round(t2.sim_seconds, 2),
@@ -289,6 +344,7 @@ def _table_results(args, designs, rows: _Rows, objs, hulls, cfg, notes, tables,
                                        for k, v in t2.outcomes.items()},
                              "files": {k: str(v) for k, v in t2.write(out_dir, "table2").items()}}
         printed.append(t2.to_markdown())
+    results["design_seconds"] = {k: round(v, 2) for k, v in design_seconds.items()}
     return results, printed
 
 
@@ -371,20 +427,20 @@ def main(argv=None) -> int:
     names = [names[i] for i in kept]
     for note in notes:
         _say(note)
-    designs = {}
-    for name, designer in rows.designers.items():
-        _say(f"designing: {name}")
-        designs.update(E.make_designs({name: designer}, objs, progress=progress))
-    if rows.pool_origins:
-        picks = ", ".join(f"{n} {origin}" for origin, n in
-                          collections.Counter(rows.pool_origins).most_common())
-        rows.notes.append(f"Design pool: where the verified picks of {len(rows.pool_origins)} objects "
-                          f"came from: {picks}")
-        _say(rows.notes[-1])
+    # every finished step (a row's designs, a row's outcomes in a table) is kept in OUT/.steps:
+    # the same command after a kill, or one that adds rows, does only what is missing
+    if args.no_resume:
+        shutil.rmtree(out_dir / steps.DIRECTORY, ignore_errors=True)
+    rows.store = steps.StepStore(out_dir, steps.common_digest(objs, cfg, backend=args.backend,
+                                                              seed=args.seed), rows.recipes)
+    designers = {name: steps.StoredDesigner(rows.store, name, d, say=_say)
+                 for name, d in rows.designers.items()}
     results = {"objects": len(objs), "names": names, "source": what, "backend": args.backend,
-               "config": args.config or ("run" if run_dir and _run_config(run_dir) else "default"),
-               "design_seconds": {k: round(d.seconds, 2) for k, d in designs.items()}}
-    made, printed = _table_results(args, designs, rows, objs, hulls, cfg, notes, tables, out_dir)
+               "config": args.config or ("run" if run_dir and _run_config(run_dir) else "default")}
+    made, printed = _table_results(args, designers, rows, objs, hulls, cfg, notes, tables, out_dir)
+    if rows.store.loaded:
+        _say(f"took up {rows.store.loaded} steps finished by an earlier call (in {out_dir / steps.DIRECTORY}; "
+             "--no-resume starts afresh)")
     results.update(made)
     if rows.ranked is not None:
         results["fitness_ranking"], text = _fitness_ranking(args, rows.ranked, objs, hulls, cfg)
@@ -395,6 +451,7 @@ def main(argv=None) -> int:
     results["seconds"] = round(time.perf_counter() - start, 1)
     with atomic_path(out_dir / "results.json") as tmp:
         tmp.write_text(json.dumps(results, indent=1))
+    rows.store.finish()
     print("\n".join(printed))
     print(f"{len(objs)} objects ({what}); wall time {results['seconds']:.0f} s; "
           f"files in {out_dir}")

@@ -233,7 +233,7 @@ class Design:
 def make_designs(designers: Mapping[str, Designer | Design], objects, *,
                  progress: bool = True) -> dict[str, Design]:
     """Run each designer once on ``objects [N, R, R, R]``; a ``Design`` passes through (so one
-    set of designs can serve both tables).  Raises VolumeError naming a designer whose output
+    set of designs can serve both tables), as does one that a designer returns.  Raises VolumeError naming a designer whose output
     has the wrong shape or NaN values."""
     objs = objects_array(objects)
     out = {}
@@ -244,9 +244,13 @@ def make_designs(designers: Mapping[str, Designer | Design], objects, *,
             start = time.perf_counter()
             if progress:
                 log.info("designing %d objects with %s", len(objs), name)
-            lefts, rights = designer(objs)
-            d = Design(np.asarray(lefts, np.float32), np.asarray(rights, np.float32),
-                       time.perf_counter() - start)
+            made = designer(objs)
+            if isinstance(made, Design):  # a designer that knows its own cost (e.g. a stored one)
+                d = made
+            else:
+                lefts, rights = made
+                d = Design(np.asarray(lefts, np.float32), np.asarray(rights, np.float32),
+                           time.perf_counter() - start)
         for side, arr in (("lefts", d.lefts), ("rights", d.rights)):
             if arr.shape != objs.shape:
                 raise VolumeError(f"designer {name!r}: {side} have shape {arr.shape}, expected "

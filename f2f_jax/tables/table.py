@@ -247,24 +247,61 @@ def grasp_only(cfg: Config) -> Config:
     return cfg.replace(sim=dataclasses.replace(cfg.sim, stability_directions=(), robustness_angles_deg=()))
 
 
-def _simulate_designs(designs: dict[str, Design], objs, hulls, cfg, backend, progress,
-                      object_xy=None, executor: str = "threads"):
-    """One sim.evaluate call over every designer's pairs (threads stay busy).
-    Returns ({designer: [N, 11] uint8}, {designer: feasible fraction}, seconds, failed count)."""
-    names = list(designs)
-    n = len(objs)
-    start = time.perf_counter()
-    out, info = sim.evaluate(
-        np.concatenate([objs] * len(names)),
-        np.concatenate([designs[k].lefts for k in names]),
-        np.concatenate([designs[k].rights for k in names]),
-        backend=backend, cfg=cfg, progress=progress, object_hulls=hulls * len(names),
-        return_info=True, executor=executor,
-        **({} if object_xy is None else {"object_xy": np.concatenate([object_xy] * len(names))}))
-    seconds = time.perf_counter() - start
-    outcomes = {k: out[j * n:(j + 1) * n] for j, k in enumerate(names)}
-    feasible = {k: float(1.0 - info.infeasible[j * n:(j + 1) * n].mean()) for j, k in enumerate(names)}
-    return outcomes, feasible, seconds, int(np.count_nonzero(info.failed))
+def _simulate_designs(designers: Mapping[str, Designer | Design], objs, hulls, cfg, backend, progress,
+                      object_xy=None, executor: str = "threads", *, store=None, step: str = "table1",
+                      made: dict | None = None):
+    """Every designer's pairs on ``objs``, simulated.
+
+    Without ``store``: every row designed (``make_designs``), then one sim.evaluate call over all
+    pairs (threads stay busy).  With a ``StepStore``: row by row, each row's outcomes for ``step``
+    taken from the store when an earlier call finished them (the row is then not even designed),
+    else designed, simulated and saved at once, so a kill loses one row at most.  made: {name:
+    Design} already made in this process (filled in; shared by Table 2's conditions).
+    Returns ({designer: [N, T] uint8}, {designer: feasible fraction}, simulation seconds, failed
+    count, {designer: design seconds})."""
+    made = {} if made is None else made
+    names = list(designers)
+
+    def design(names_):
+        todo = {k: designers[k] for k in names_ if k not in made}
+        made.update(make_designs(todo, objs, progress=progress))
+        return {k: made[k] for k in names_}
+
+    def simulate(designs):
+        n, keys = len(objs), list(designs)
+        start = time.perf_counter()
+        out, info = sim.evaluate(
+            np.concatenate([objs] * len(keys)),
+            np.concatenate([designs[k].lefts for k in keys]),
+            np.concatenate([designs[k].rights for k in keys]),
+            backend=backend, cfg=cfg, progress=progress, object_hulls=hulls * len(keys),
+            return_info=True, executor=executor,
+            **({} if object_xy is None else {"object_xy": np.concatenate([object_xy] * len(keys))}))
+        seconds = time.perf_counter() - start
+        return ({k: out[j * n:(j + 1) * n] for j, k in enumerate(keys)},
+                {k: float(1.0 - info.infeasible[j * n:(j + 1) * n].mean()) for j, k in enumerate(keys)},
+                seconds, {k: int(np.count_nonzero(info.failed[j * n:(j + 1) * n])) for j, k in enumerate(keys)})
+
+    if store is None:
+        designs = design(names)
+        outcomes, feasible, seconds, failed = simulate(designs)
+        return (outcomes, feasible, seconds, sum(failed.values()),
+                {k: d.seconds for k, d in designs.items()})
+    outcomes, feasible, seconds, failed, design_seconds = {}, {}, 0.0, 0, {}
+    for name in names:
+        got = store.load(step, name)
+        if got is None:
+            d = design([name])[name]
+            out, feas, sec, fail = simulate({name: d})
+            got = dict(outcomes=out[name], feasible=feas[name], seconds=sec, failed=fail[name],
+                       design_seconds=d.seconds)
+            store.save(step, name, **got)
+        outcomes[name] = np.asarray(got["outcomes"], np.uint8)
+        feasible[name] = float(got["feasible"])
+        seconds += float(got["seconds"])
+        failed += int(got["failed"])
+        design_seconds[name] = float(got["design_seconds"])
+    return outcomes, feasible, seconds, failed, design_seconds
 
 
 def _counting_note() -> str:
@@ -275,7 +312,7 @@ def _counting_note() -> str:
 
 def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | None = None, *,
            backend: str = "mujoco", progress: bool = True, object_hulls=None,
-           cache_dir=None, executor: str = "threads") -> Table:
+           cache_dir=None, executor: str = "threads", store=None, made: dict | None = None) -> Table:
     """The paper's Table 1 for our designers on ``objects`` [N, 40, 40, 40].
 
     designers: {row name: designer or precomputed Design}; rows named as in the paper
@@ -285,21 +322,22 @@ def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     Rates are absolute over all objects, not conditional on a successful grasp (see the module
     docstring); infeasible designs score 0 and ``Table.feasible`` gives each row's feasible share.
     object_hulls / cache_dir / executor: as in ``sim.evaluate``; backend: "mujoco", "mjx" or "warp".
+    store: a ``tables.steps.StepStore`` keeping each row's outcomes as it finishes (resumable
+    evaluations; None: one simulation call over all rows); made: {name: Design} made earlier in
+    this process, reused and filled in (so Table 2 designs no row twice).
     """
     cfg = cfg or default()
     objs, hulls, notes = prepare_objects(objects, cfg, object_hulls=object_hulls,
                                          cache_dir=cache_dir, progress=progress)
-    designs = make_designs(designers, objs, progress=progress)
-    outcomes, feasible, seconds, failed = _simulate_designs(designs, objs, hulls, cfg, backend,
-                                                            progress, executor=executor)
+    outcomes, feasible, seconds, failed, design_seconds = _simulate_designs(
+        designers, objs, hulls, cfg, backend, progress, executor=executor, store=store, made=made)
     if failed:
         notes.append(f"{failed} candidate(s) could not be simulated (model build errors): scored 0")
     notes.append(_counting_note())
     return Table(kind="table1", columns=figures.TABLE1_COLUMNS,
                  values={k: table1_values(v) for k, v in outcomes.items()}, feasible=feasible,
                  outcomes=outcomes, n_objects=len(objs), paper=figures.PAPER_TABLE1,
-                 design_seconds={k: d.seconds for k, d in designs.items()}, sim_seconds=seconds,
-                 notes=notes)
+                 design_seconds=design_seconds, sim_seconds=seconds, notes=notes)
 
 
 def position_offsets(n: int, condition: figures.Condition, seed: int = 0) -> np.ndarray | None:
@@ -322,7 +360,7 @@ def position_offsets(n: int, condition: figures.Condition, seed: int = 0) -> np.
 def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | None = None, *,
            conditions: Sequence[figures.Condition] = figures.TABLE2_CONDITIONS, backend: str = "mujoco",
            progress: bool = True, object_hulls=None, cache_dir=None, seed: int = 0,
-           executor: str = "threads") -> Table:
+           executor: str = "threads", store=None, made: dict | None = None) -> Table:
     """The paper's Table 2 (appendix): grasp success (percent) of each designer under perturbed
     system parameters: the original setting, object mass 100 g and 150 g, finger-object friction
     0.1 and 0.05, and the object shifted by x in +-[0.1, 0.5] cm with y in +-[0.1, 1] cm or
@@ -333,13 +371,13 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     conditions run on "mujoco" (said in the notes).  The table scores the first grasp only, so
     only that trial is simulated (the pushes and turned grasps that follow a held grasp cannot
     change it): ``Table.outcomes[name]`` is [C, N, 1]; ``feasible`` as in ``table1``; executor:
-    as in ``sim.evaluate``.
+    as in ``sim.evaluate``; store, made: as in ``table1`` (a row's outcomes kept per condition).
     """
     cfg = cfg or default()
     objs, hulls, notes = prepare_objects(objects, cfg, object_hulls=object_hulls,
                                          cache_dir=cache_dir, progress=progress)
-    designs = make_designs(designers, objs, progress=progress)
-    per_condition, feasible, seconds = {}, {}, 0.0
+    made = {} if made is None else made
+    per_condition, feasible, seconds, design_seconds = {}, {}, 0.0, {}
     items = conditions
     if progress:
         from tqdm.auto import tqdm
@@ -350,14 +388,15 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
         if cond_backend != backend:
             notes.append(f"{cond.name}: simulated with plain MuJoCo (MJX places every object at "
                          "the grasp location)")
-        out, feasible, sec, failed = _simulate_designs(
-            designs, objs, hulls, grasp_only(cond.config(cfg)), cond_backend, progress,
-            object_xy=position_offsets(len(objs), cond, seed), executor=executor)
+        out, feasible, sec, failed, design_seconds = _simulate_designs(
+            designers, objs, hulls, grasp_only(cond.config(cfg)), cond_backend, progress,
+            object_xy=position_offsets(len(objs), cond, seed), executor=executor, store=store,
+            step=f"table2/{cond.name}", made=made)
         per_condition[cond.name] = out
         seconds += sec
         if failed:
             notes.append(f"{cond.name}: {failed} candidate(s) could not be simulated: scored 0")
-    names = list(designs)
+    names = list(designers)
     values = {k: {c.name: float(100.0 * per_condition[c.name][k][:, 0].mean()) for c in conditions}
               for k in names}
     outcomes = {k: np.stack([per_condition[c.name][k] for c in conditions]) for k in names}
@@ -365,7 +404,6 @@ def table2(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
                  "lateral friction); shifts are drawn once per object, the same for every designer.")
     return Table(kind="table2", columns=tuple(c.name for c in conditions), values=values,
                  feasible=feasible, outcomes=outcomes, n_objects=len(objs), paper=figures.PAPER_TABLE2,
-                 design_seconds={k: d.seconds for k, d in designs.items()}, sim_seconds=seconds,
-                 notes=notes)
+                 design_seconds=design_seconds, sim_seconds=seconds, notes=notes)
 
 
