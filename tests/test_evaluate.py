@@ -219,6 +219,14 @@ def test_a_killed_table_resumes_with_the_rows_it_had_finished(objects, hulls, ti
     calls.clear()
     E.table1(designers, objects, tiny, object_hulls=hulls, progress=False, store=store())
     assert len(calls) == 1
+    # a batched backend gets every missing row in one call (here plain MuJoCo stands in for it)
+    calls.clear()
+    monkeypatch.setattr(sim, "evaluate", lambda *a, **kw: (calls.append(len(a[0])),
+                                                           real(*a, **{**kw, "backend": "mujoco"}))[1])
+    batched = E.table1(designers, objects, tiny, object_hulls=hulls, progress=False, backend="mjx",
+                       store=store(WSG50="again", Imprint="again"))
+    assert calls == [2 * len(objects)]
+    np.testing.assert_array_equal(batched.outcomes["Imprint"], t1.outcomes["Imprint"])
 
 
 def test_network_designers_post_process_like_training(objects, tiny):

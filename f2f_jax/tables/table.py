@@ -253,9 +253,10 @@ def _simulate_designs(designers: Mapping[str, Designer | Design], objs, hulls, c
     """Every designer's pairs on ``objs``, simulated.
 
     Without ``store``: every row designed (``make_designs``), then one sim.evaluate call over all
-    pairs (threads stay busy).  With a ``StepStore``: row by row, each row's outcomes for ``step``
-    taken from the store when an earlier call finished them (the row is then not even designed),
-    else designed, simulated and saved at once, so a kill loses one row at most.  made: {name:
+    pairs (threads stay busy).  With a ``StepStore``: each row's outcomes for ``step`` taken from
+    the store when an earlier call finished them (the row is then not even designed), the others
+    designed, simulated and saved, row by row on plain MuJoCo threads (a kill loses one row at
+    most), all together on a batched backend or Ray (which fill better with more).  made: {name:
     Design} already made in this process (filled in; shared by Table 2's conditions).
     Returns ({designer: [N, T] uint8}, {designer: feasible fraction}, simulation seconds, failed
     count, {designer: design seconds})."""
@@ -288,14 +289,21 @@ def _simulate_designs(designers: Mapping[str, Designer | Design], objs, hulls, c
         return (outcomes, feasible, seconds, sum(failed.values()),
                 {k: d.seconds for k, d in designs.items()})
     outcomes, feasible, seconds, failed, design_seconds = {}, {}, 0.0, 0, {}
+    found = {name: store.load(step, name) for name in names}
+    missing = [name for name in names if found[name] is None]
+    # plain MuJoCo threads lose nothing by going row by row; a batch (MJX, warp) or a cluster
+    # (ray) fills better with every missing row at once, saved when that call ends
+    groups = ([[name] for name in missing] if backend == "mujoco" and executor == "threads"
+              else [missing] if missing else [])
+    for group in groups:
+        designs = design(group)
+        out, feas, sec, fail = simulate(designs)
+        for name in group:
+            found[name] = dict(outcomes=out[name], feasible=feas[name], seconds=sec / len(group),
+                               failed=fail[name], design_seconds=designs[name].seconds)
+            store.save(step, name, **found[name])
     for name in names:
-        got = store.load(step, name)
-        if got is None:
-            d = design([name])[name]
-            out, feas, sec, fail = simulate({name: d})
-            got = dict(outcomes=out[name], feasible=feas[name], seconds=sec, failed=fail[name],
-                       design_seconds=d.seconds)
-            store.save(step, name, **got)
+        got = found[name]
         outcomes[name] = np.asarray(got["outcomes"], np.uint8)
         feasible[name] = float(got["feasible"])
         seconds += float(got["seconds"])
