@@ -208,6 +208,15 @@ class TrainConfig:
     # Weight of the squared latent distance to the imprint fingers in the generator's co-training
     # loss (0: the paper's -mean F alone); see steps.gn_fitness_step.
     imprint_anchor: float = 0.0
+    # What the anchor pulls towards: "imprint" (the object's imprint fingers) or "best" (per
+    # training object, the fingers that have passed the most simulated trials so far: its imprint,
+    # replaced only by a cycle design that passed strictly more; the simulator, not the fitness
+    # net, then says where the generator should go).
+    anchor_target: str = "imprint"
+    # Designs per object and cycle: the generator's own and cycle_candidates - 1 latent
+    # perturbations of it (nets.inference.LATENT_NOISE), all simulated and stored (designs of one
+    # object that differ a little, for the fitness net and for anchor_target="best").
+    cycle_candidates: int = 1
     # --- the run's data (experiments/cotrain.py) ---
     n_objects: int = 1000  # built-in objects made when no --objects directory is given
     test_fraction: float = 0.2  # held-out share of the objects (a seeded split, kept in the run's objects/)

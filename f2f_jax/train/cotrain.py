@@ -17,7 +17,10 @@ where it stopped and ends with the same parameters as one that was never stopped
    once ``warmup_designs`` designs exist, refit the fitness net on balanced batches (half designs
    of every cycle so far, half the pretraining data) until its BCE < ``fn_target_loss``
    (``min_epochs``..``max_epochs``) and train the generator against it until its loss <
-   ``gn_target_loss`` (plus ``imprint_anchor`` x the latent distance to the imprint fingers).
+   ``gn_target_loss`` (plus ``imprint_anchor`` x the latent distance to the imprint fingers, or
+   with ``anchor_target="best"`` to each object's best-simulated fingers so far).  With
+   ``cycle_candidates`` K > 1 each sampled object gets K designs: the generator's own and K - 1
+   latent perturbations, all simulated.
 
 Every source of randomness is derived from (seed, stage, cycle, epoch), never from how far an
 earlier process got, which is what makes resuming exact.  Each epoch appends a JSON line to
@@ -40,6 +43,7 @@ from f2f_jax.config import TRIAL_NAMES, Config
 from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import is_feasible, postprocess
+from f2f_jax.nets.inference import TrainedNets, propose
 from f2f_jax.train import steps as S
 from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
 from f2f_jax.train.curves import plot_curves
@@ -61,6 +65,7 @@ log = logging.getLogger(__name__)
 
 STAGES = ("ae", "fn", "gn", "cycle")
 _STAGE_ID = {"ae": 1, "fn": 2, "gn": 3, "cycle": 4, "eval": 5}
+ANCHOR_TARGETS = ("imprint", "best")  # TrainConfig.anchor_target
 
 
 class CoTrainRun:
@@ -86,6 +91,11 @@ class CoTrainRun:
         self.executor = executor
         self.progress = progress
         self.seed = cfg.train.seed
+        t = cfg.train
+        if t.anchor_target not in ANCHOR_TARGETS:
+            raise F2FError(f"train.anchor_target must be one of {ANCHOR_TARGETS}, got {t.anchor_target!r}")
+        if t.cycle_candidates < 1:
+            raise F2FError(f"train.cycle_candidates must be >= 1, got {t.cycle_candidates}")
         self._check_run_json()
 
     # -- bookkeeping --------------------------------------------------------------------------
@@ -311,6 +321,38 @@ class CoTrainRun:
         r = np.array([self._imprint_row[self.names[i]] for i in obj_idx])
         return self.pre["left"][r].astype(np.float32), self.pre["right"][r].astype(np.float32)
 
+    def _candidates(self, objs: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``cycle_candidates`` designs per object (the generator's own, then latent perturbations),
+        post-processed like design(): objects repeated, lefts, rights, each [N*K, R, R, R]."""
+        k = self.cfg.train.cycle_candidates
+        if k == 1:
+            return (objs, *self.generate(objs)[:2])
+        nets = TrainedNets(self.cfg, self.state["gn"].variables, self.state["fn"].variables)
+        lefts, rights = propose(nets, objs, self._key("cycle", c, 3), k)
+        postprocess(lefts, rights, self.cfg.geometry)
+        r = lefts.shape[2:]
+        return np.repeat(objs, k, 0), lefts.reshape(-1, *r), rights.reshape(-1, *r)
+
+    def _best_fingers(self, obj_idx: np.ndarray, gen: dict) -> tuple[np.ndarray, np.ndarray]:
+        """anchor_target="best": per object, the fingers that passed the most simulated trials
+        so far, its imprint pair unless a cycle design passed strictly more (the earliest such)."""
+        lefts, rights = self._imprints(obj_idx)
+        if len(gen["outcome"]) == 0:
+            return lefts, rights
+        if not hasattr(self, "_imprint_score"):
+            imp = np.flatnonzero(self.pre["kind"] == "imprint")
+            self._imprint_score = {str(self.pre["name"][r]): int(self.pre["outcome"][r].sum()) for r in imp}
+        passed = gen["outcome"].sum(1)
+        names = gen["name"].astype(str)
+        for j, i in enumerate(obj_idx):
+            rows = np.flatnonzero(names == self.names[i])
+            if len(rows) == 0:
+                continue
+            best = rows[np.argmax(passed[rows])]  # argmax: the earliest of the best
+            if passed[best] > self._imprint_score[self.names[i]]:
+                lefts[j], rights[j] = gen["left"][best], gen["right"][best]
+        return lefts, rights
+
     def run_cycle(self, c: int) -> dict:
         t = self.cfg.train
         start = time.perf_counter()
@@ -319,8 +361,8 @@ class CoTrainRun:
             rng = self._rng("cycle", c, 0)
             pick = rng.choice(self.train_idx, t.objects_per_cycle,
                               replace=t.objects_per_cycle > len(self.train_idx))
-            objs = self.objects[pick]
-            lefts, rights, feasible = self.generate(objs)
+            objs, lefts, rights = self._candidates(self.objects[pick], c)
+            pick = np.repeat(pick, t.cycle_candidates)
             out = self._simulate(objs, lefts, rights, f"cycle {c} designs")
             self.store.append(objs, lefts, rights, out, kind="generated",
                               names=[self.names[i] for i in pick], keys=[key], cycle=c)
@@ -350,7 +392,9 @@ class CoTrainRun:
 
         def gn_batch(i, b):
             idx = self.train_idx[b]
-            arrays = (self.objects[idx], *(self._imprints(idx) if t.imprint_anchor else ()))
+            target = () if not t.imprint_anchor else (
+                self._best_fingers(idx, gen) if t.anchor_target == "best" else self._imprints(idx))
+            arrays = (self.objects[idx], *target)
             put = S.shard(*arrays)
             return (fit_vars, *(put if len(arrays) > 1 else (put,)))
 
