@@ -307,7 +307,7 @@ def _pool_note(rows: _Rows) -> None:
         got = rows.store.load("origins", rows.pool_name)
         rows.pool_origins = [str(o) for o in got["origins"]] if got is not None else []
     if rows.pool_origins:
-        picks = ", ".join(f"{n} {origin}" for origin, n in
+        picks = "; ".join(f"{n} {origin}" for origin, n in  # origins hold commas
                           collections.Counter(rows.pool_origins).most_common())
         rows.notes.append(f"Design pool: where the verified picks of {len(rows.pool_origins)} objects "
                           f"came from: {picks}")
