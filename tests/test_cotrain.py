@@ -240,10 +240,11 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     out = tmp_path / "eval"
     args = ["--run-dir", str(run_dir), "--extra", f"cycle 0={run_dir / 'pretrained'}", "--objects", "1",
             "--fresh", "1", "--seed", "5", "--neighbourhood", "2", "--tables", "1", "--no-randemb",
-            "--design-search", "1", "--quiet", "--out", str(out)]
+            "--design-search", "1", "--fitness-ranking", "2", "--quiet", "--out", str(out)]
     assert cli.main(args) == 0, capsys.readouterr().err
     res = json.loads((out / "results.json").read_text())
     assert res["objects"] == 2 and res["names"][1].startswith("fresh/")
+    assert res["fitness_ranking"]["candidates"] == 2 and res["fitness_ranking"]["objects"] == 2
     # the design pool (the generator's candidate and the imprints, verified) passes, object by
     # object, at least the trials the Imprint row's fingers pass: they are in its pool
     outcomes = res["table1"]["outcomes"]
@@ -273,5 +274,8 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     assert cli.main(args) == 0
     captured = capsys.readouterr()
     assert "took up" in captured.err and "designing:" not in captured.err
-    assert json.loads((out / "results.json").read_text())["table1"] == res["table1"]
+    assert "neighbourhood of" not in captured.err and "fitness ranking:" not in captured.err
+    again = json.loads((out / "results.json").read_text())
+    for part in ("table1", "neighbourhood", "fitness_ranking"):
+        assert again[part] == res[part], part
     assert "Design pool: where the verified picks" in captured.out

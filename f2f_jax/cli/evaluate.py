@@ -22,8 +22,8 @@ interval; --fresh N adds N never-seen built-in objects to the run's held-out one
 Writes table1.{md,csv,png}, table2.{md,csv,png} and results.json into --out (default DIR/eval,
 or runs/eval without a run) and prints the markdown.
 
-Nothing finished is lost to a kill: each row's designs and its outcomes in each table are saved in
-OUT/.steps as they end (``f2f_jax.tables.steps``), and the same command run again does only what
+Nothing finished is lost to a kill: each row's designs, its outcomes in each table and the
+candidates --neighbourhood and --fitness-ranking simulate are saved in OUT/.steps as they end (``f2f_jax.tables.steps``), and the same command run again does only what
 is missing.  A command that adds rows (another --extra, --design-search, Table 2) reuses the rows
 already simulated with the same objects, settings and code; --no-resume starts afresh.  The
 designs are deleted once results.json is written; the outcomes (bytes per object) stay.
@@ -279,7 +279,7 @@ def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
         rows.table2.append(row)
         if args.design_search:
             _search_rows(rows, nets, args)
-        rows.ranked = nets if args.fitness_ranking else None
+        rows.ranked = (row, nets) if args.fitness_ranking else None
         if args.neighbourhood:
             rows.generators[row] = nets
     for flag, value in (("--design-search", args.design_search),
@@ -348,11 +348,18 @@ def _table_results(args, designers, rows: _Rows, objs, hulls, cfg, notes, tables
     return results, printed
 
 
-def _fitness_ranking(args, nets, objs, hulls, cfg) -> tuple[dict, str]:
-    _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
-    rk = E.fitness_ranking(nets, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
-                           backend=args.backend, object_hulls=hulls, progress=not args.quiet,
-                           executor=args.executor)
+def _fitness_ranking(args, ranked, objs, hulls, cfg, store) -> tuple[dict, str]:
+    row, nets = ranked
+    step = f"fitness ranking {args.fitness_ranking}"
+    got = store.load(step, row)
+    if got is not None:
+        rk = json.loads(str(got["ranking"]))
+    else:
+        _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
+        rk = E.fitness_ranking(nets, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
+                               backend=args.backend, object_hulls=hulls, progress=not args.quiet,
+                               executor=args.executor)
+        store.save(step, row, ranking=np.array(json.dumps(rk)))
     text = (f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "
             f"within-object Spearman {rk['spearman']:.2f} ({rk['objects_ranked']} objects with "
             f"differing candidates), grasp AUC {rk['grasp_auc']:.2f}; trials passed of 11: "
@@ -362,14 +369,19 @@ def _fitness_ranking(args, nets, objs, hulls, cfg) -> tuple[dict, str]:
     return rk, text
 
 
-def _neighbourhood(args, generators: dict, objs, hulls, cfg) -> tuple[dict, str]:
+def _neighbourhood(args, generators: dict, objs, hulls, cfg, store) -> tuple[dict, str]:
     k = args.neighbourhood
     sims = {}
     for name, m in generators.items():
+        got = store.load(f"neighbourhood {k}", name)
+        if got is not None:
+            sims[name] = got["outcomes"]
+            continue
         _say(f"neighbourhood of {name}: {k} candidates per object, all simulated")
         sims[name] = E.candidate_outcomes(m, objs, cfg, candidates=k, key=args.seed,
                                           backend=args.backend, object_hulls=hulls,
                                           progress=not args.quiet, executor=args.executor)[3]
+        store.save(f"neighbourhood {k}", name, outcomes=sims[name])
     stats = {name: E.neighbourhood_stats(v) for name, v in sims.items()}
     first, *others = sims
     gains = {name: E.paired_gain(sims[first], sims[name], seed=args.seed) for name in others}
@@ -438,16 +450,16 @@ def main(argv=None) -> int:
     results = {"objects": len(objs), "names": names, "source": what, "backend": args.backend,
                "config": args.config or ("run" if run_dir and _run_config(run_dir) else "default")}
     made, printed = _table_results(args, designers, rows, objs, hulls, cfg, notes, tables, out_dir)
+    results.update(made)
+    if rows.ranked is not None:
+        results["fitness_ranking"], text = _fitness_ranking(args, rows.ranked, objs, hulls, cfg, rows.store)
+        printed.append(text)
+    if rows.generators:
+        results["neighbourhood"], text = _neighbourhood(args, rows.generators, objs, hulls, cfg, rows.store)
+        printed.append(text)
     if rows.store.loaded:
         _say(f"took up {rows.store.loaded} steps finished by an earlier call (in {out_dir / steps.DIRECTORY}; "
              "--no-resume starts afresh)")
-    results.update(made)
-    if rows.ranked is not None:
-        results["fitness_ranking"], text = _fitness_ranking(args, rows.ranked, objs, hulls, cfg)
-        printed.append(text)
-    if rows.generators:
-        results["neighbourhood"], text = _neighbourhood(args, rows.generators, objs, hulls, cfg)
-        printed.append(text)
     results["seconds"] = round(time.perf_counter() - start, 1)
     with atomic_path(out_dir / "results.json") as tmp:
         tmp.write_text(json.dumps(results, indent=1))
