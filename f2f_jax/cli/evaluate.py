@@ -231,7 +231,7 @@ def _baseline_rows(rows: _Rows, cfg) -> None:
     rows.table2.append("Imprint")
 
 
-def _search_rows(rows: _Rows, nets, args) -> None:
+def _search_rows(rows: _Rows, nets, recipe: str, args) -> None:
     """--design-search K: f2f_jax.design on the generator's K candidates, then with the imprints."""
     k = args.design_search
     search = functools.partial(design, params=nets, candidates=k, verify=True,
@@ -240,7 +240,6 @@ def _search_rows(rows: _Rows, nets, args) -> None:
     name = f"Fit2Form + search ({k}, verify)"  # the generator's candidates only
     rows.designers[name] = E.pair_designer(functools.partial(search, imprint=False), batched=True,
                                            desc=name)
-    recipe = _nets_recipe(nets)
     rows.recipes[name] = f"search {k} without imprints, {recipe}"
     rows.table2.append(name)
     pool_name = f"Design pool ({k} + imprints, verify)"  # design()'s default with verify
@@ -268,17 +267,18 @@ def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
     if nets is not None:
         row = E.OBJECTIVE_ROWS.get(nets.objectives, f"Fit2Form ({nets.objectives})")
         _say(f"{row}: {nets.source}")
+        recipe = _nets_recipe(nets)  # what this checkpoint's rows' designs depend on
         if not args.no_randemb:
             rows.designers["RandEmb+FN"] = E.random_embedding_designer(
                 nets, jax.random.key(args.seed), samples=args.randemb_samples,
                 steps=args.randemb_steps)
             rows.recipes["RandEmb+FN"] = (f"randemb {args.randemb_steps} steps {args.randemb_samples} "
-                                          f"samples seed {args.seed}, {_nets_recipe(nets)}")
+                                          f"samples seed {args.seed}, {recipe}")
         rows.designers[row] = E.nets_designer(nets)
-        rows.recipes[row] = f"generator, {_nets_recipe(nets)}"
+        rows.recipes[row] = f"generator, {recipe}"
         rows.table2.append(row)
         if args.design_search:
-            _search_rows(rows, nets, args)
+            _search_rows(rows, nets, recipe, args)
         rows.ranked = (row, nets) if args.fitness_ranking else None
         if args.neighbourhood:
             rows.generators[row] = nets

@@ -233,8 +233,8 @@ class Design:
 def make_designs(designers: Mapping[str, Designer | Design], objects, *,
                  progress: bool = True) -> dict[str, Design]:
     """Run each designer once on ``objects [N, R, R, R]``; a ``Design`` passes through (so one
-    set of designs can serve both tables), as does one that a designer returns.  Raises VolumeError naming a designer whose output
-    has the wrong shape or NaN values."""
+    set of designs can serve both tables), as does one that a designer returns.  Raises
+    VolumeError naming a designer whose output has the wrong shape or NaN values."""
     objs = objects_array(objects)
     out = {}
     for name, designer in designers.items():

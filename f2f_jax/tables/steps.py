@@ -131,25 +131,21 @@ class StoredDesigner:
     from it on a later call instead of designing again (a design search simulates for minutes).
 
     Returns a ``designers.Design`` (``make_designs`` keeps its ``seconds``: the time the designs
-    first took, not the time of reading them back).  say: called with a line before designing.
+    first took, not the time of reading them back).  New designs go through ``make_designs``
+    (timed and checked) before they are saved.  say: called with a line before designing.
     """
 
     def __init__(self, store: StepStore, name: str, designer, say=None):
         self.store, self.name, self.designer, self.say = store, name, designer, say
 
     def __call__(self, objects):
-        import time
-
-        from f2f_jax.tables.designers import Design
+        from f2f_jax.tables.designers import Design, make_designs
 
         got = self.store.load_design(self.name)
         if got is not None and got["lefts"].shape == np.shape(objects):
             return Design(got["lefts"], got["rights"], float(got["seconds"]))
         if self.say is not None:
             self.say(f"designing: {self.name}")
-        start = time.perf_counter()
-        lefts, rights = self.designer(objects)
-        d = Design(np.asarray(lefts, np.float32), np.asarray(rights, np.float32),
-                   time.perf_counter() - start)
+        d = make_designs({self.name: self.designer}, objects, progress=False)[self.name]
         self.store.save_design(self.name, lefts=d.lefts, rights=d.rights, seconds=d.seconds)
         return d

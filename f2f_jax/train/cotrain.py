@@ -336,12 +336,9 @@ class CoTrainRun:
     def _best_fingers(self, obj_idx: np.ndarray, gen: dict) -> tuple[np.ndarray, np.ndarray]:
         """anchor_target="best": per object, the fingers that passed the most simulated trials
         so far, its imprint pair unless a cycle design passed strictly more (the earliest such)."""
-        lefts, rights = self._imprints(obj_idx)
+        lefts, rights = self._imprints(obj_idx)  # also indexes the imprint rows (_imprint_row)
         if len(gen["outcome"]) == 0:
             return lefts, rights
-        if not hasattr(self, "_imprint_score"):
-            imp = np.flatnonzero(self.pre["kind"] == "imprint")
-            self._imprint_score = {str(self.pre["name"][r]): int(self.pre["outcome"][r].sum()) for r in imp}
         passed = gen["outcome"].sum(1)
         names = gen["name"].astype(str)
         for j, i in enumerate(obj_idx):
@@ -349,7 +346,7 @@ class CoTrainRun:
             if len(rows) == 0:
                 continue
             best = rows[np.argmax(passed[rows])]  # argmax: the earliest of the best
-            if passed[best] > self._imprint_score[self.names[i]]:
+            if passed[best] > self.pre["outcome"][self._imprint_row[self.names[i]]].sum():
                 lefts[j], rights[j] = gen["left"][best], gen["right"][best]
         return lefts, rights
 
