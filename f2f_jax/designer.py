@@ -293,13 +293,13 @@ def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
 
 def simulate_candidates(nets, objects, lefts, rights, feasible, backend, progress=None,
                         object_hulls=None, executor: str = "threads") -> np.ndarray:
-    """Simulated outcomes [B, K, 11] uint8: the feasible candidates in one evaluate call, zeros
-    for the rest (an infeasible finger scores all 0 by the protocol).  object_hulls: optional
-    precomputed hulls, one per object."""
+    """Simulated outcomes [B, K, T] uint8 (T = ``nets.config.sim.n_trials``, 11 for the whole
+    protocol): the feasible candidates in one evaluate call, zeros for the rest (an infeasible
+    finger scores all 0 by the protocol).  object_hulls: optional precomputed hulls, one per object."""
     from f2f_jax.sim import evaluate  # MuJoCo only when verifying: `import f2f_jax` stays light
 
     b, k = feasible.shape
-    out = np.zeros((b, k, len(TRIAL_NAMES)), np.uint8)
+    out = np.zeros((b, k, nets.config.sim.n_trials), np.uint8)
     ib, ik = np.nonzero(feasible)
     if len(ib):
         hulls = None if object_hulls is None else [object_hulls[i] for i in ib]

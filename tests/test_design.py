@@ -345,3 +345,20 @@ def test_cli_process_exit_code_no_traceback(tmp_path):
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr and "mesh file not found" in proc.stderr
     assert not out.exists()
+
+
+def test_simulate_candidates_follows_the_configured_trials(models, sphere_tsdf, monkeypatch, tmp_path):
+    """A grasp-only configuration (Table 2's) gets one column per candidate, not the grasp copied
+    into 11: the imprint pair holds the sphere, the infeasible slot scores 0 without simulation."""
+    import dataclasses
+
+    from f2f_jax.tables.table import grasp_only
+
+    monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path / "cache"))
+    left, right = imprint_fingers(sphere_tsdf)
+    nets = dataclasses.replace(models, config=grasp_only(models.config))
+    out = design_module.simulate_candidates(
+        nets, sphere_tsdf[None], np.stack([[left, left]]), np.stack([[right, right]]),
+        np.array([[True, False]]), "mujoco", progress=False)
+    assert out.shape == (1, 2, 1) and out.dtype == np.uint8
+    assert out[0, :, 0].tolist() == [1, 0]

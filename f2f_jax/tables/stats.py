@@ -75,7 +75,8 @@ def candidate_outcomes(nets, objects, cfg: Config | None = None, *, candidates: 
     default ``nets.inference.LATENT_NOISE``), post-processed; infeasible ones score 0 by the protocol.
     objects: [N, 40, 40, 40]; object_hulls: optional, one per object; executor: as in
     ``sim.evaluate``.
-    Returns (lefts, rights [N, K, 40, 40, 40], feasible [N, K], simulated [N, K, 11] uint8).
+    Returns (lefts, rights [N, K, 40, 40, 40], feasible [N, K], simulated [N, K, T] uint8; T = 11
+    for the whole protocol, 1 for a ``grasp_only`` config).
     """
     if candidates < 1:
         raise ValueError(f"candidates must be >= 1, got {candidates}")
