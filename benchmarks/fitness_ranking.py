@@ -271,9 +271,14 @@ def fit(args) -> int:
 
     objects, lefts, rights, labels, groups = _load_groups(Path(args.data), args.rows)
     row_object = np.concatenate([np.full(len(rows), o) for o, rows in groups])
-    mixed = [g for g in groups if np.ptp(labels[g[1]]) > 0]
-    print(f"{len(labels)} rows, {len(groups)} objects x generators, {len(mixed)} with held and "
-          f"failed grasps; held {labels.mean():.3f}", flush=True)
+    # validation: whole objects (every generator's candidates of them) kept out of training
+    held = {i for i, o in enumerate(objects) if int(_digest(o)[:8], 16) % 1000 < 1000 * args.val_fraction}
+    val = [gr for gr in groups if gr[0] in held and np.ptp(labels[gr[1]]) > 0]
+    groups = [gr for gr in groups if gr[0] not in held]
+    mixed = [gr for gr in groups if np.ptp(labels[gr[1]]) > 0]
+    n_train = sum(len(rows) for _, rows in groups)
+    print(f"{n_train} training rows, {len(groups)} objects x generators, {len(mixed)} with held and "
+          f"failed grasps; held {labels.mean():.3f}; validation: {len(val)} mixed groups", flush=True)
     if not mixed and args.pair > 0:
         raise SystemExit("no object has both held and failed candidates: nothing to rank")
     test_set = np.load(Path(args.test or Path(args.data) / "test.npz"))
@@ -287,9 +292,14 @@ def fit(args) -> int:
     g, p = args.objects, args.per_object
 
     @jax.jit
-    def step(params, stats, opt_state, obj, left, right, y):
+    def step(params, stats, opt_state, obj, left, right, y, flips):
+        v = fitness_input(obj, left, right)
+        if args.flip:  # the world's mirror symmetries: x (the jaws swap), y; z is up
+            v = jnp.where(flips[:, 0, None, None, None], jnp.flip(v, 1), v)
+            v = jnp.where(flips[:, 1, None, None, None], jnp.flip(v, 2), v)
+
         def loss_fn(q):
-            logit, upd = model.apply({"params": q, "batch_stats": stats}, fitness_input(obj, left, right),
+            logit, upd = model.apply({"params": q, "batch_stats": stats}, v,
                                      train=True, mutable=["batch_stats"])
             bce = optax.sigmoid_binary_cross_entropy(logit, y).mean()
             pair = pair_loss(logit.reshape(g, p), y.reshape(g, p))
@@ -317,6 +327,13 @@ def fit(args) -> int:
         out = ranking_stats(np.repeat(prob[..., None], simulated.shape[-1], -1), simulated)
         out["within_auc"], out["within_objects"] = within_object_auc(prob, simulated[..., 0],
                                                                      test_set["feasible"])
+        aucs = []
+        for o, rows in val:
+            s = np.concatenate([np.asarray(score(params, stats, *(jnp.asarray(a, jnp.float32) for a in (
+                np.repeat(objects[o][None], len(rows[i:i + 64]), 0), lefts[rows[i:i + 64]],
+                rights[rows[i:i + 64]])))) for i in range(0, len(rows), 64)])
+            aucs.append(within_object_auc(s[None], labels[rows][None])[0])
+        out["val_auc"] = float(np.mean(aucs)) if aucs else float("nan")
         return out
 
     rng = np.random.default_rng(args.seed)
@@ -328,7 +345,8 @@ def fit(args) -> int:
         idx = np.concatenate([rng.choice(rows, p, replace=len(rows) < p) for _, rows in chosen])
         params, stats, opt_state, bce, pair = step(
             params, stats, opt_state, *(jnp.asarray(a, jnp.float32) for a in
-                                        (objects[row_object[idx]], lefts[idx], rights[idx], labels[idx])))
+                                        (objects[row_object[idx]], lefts[idx], rights[idx], labels[idx])),
+            jnp.asarray(rng.random((len(idx), 2)) < 0.5))
         history.append((float(bce), float(pair)))
         if (i + 1) % max(1, args.steps // args.reports) == 0:
             st = evaluate()
@@ -339,10 +357,11 @@ def fit(args) -> int:
                   f"{st['spearman']:.3f}, within-object grasp AUC {st['within_auc']:.3f} "
                   f"({st['within_objects']} objects); trials of 11: pick {st['trials_picked']:.2f}, "
                   f"own {st['trials_first']:.2f}, mean {st['trials_mean']:.2f}, best "
-                  f"{st['trials_best']:.2f}; grasp AUC {st['grasp_auc']:.3f} [{st['seconds']:.0f} s]",
+                  f"{st['trials_best']:.2f}; grasp AUC {st['grasp_auc']:.3f}; validation within-object "
+                  f"AUC {st['val_auc']:.3f} [{st['seconds']:.0f} s]",
                   flush=True)
     if args.json:
-        Path(args.json).write_text(json.dumps(dict(rows=int(len(labels)), objects=len(groups),
+        Path(args.json).write_text(json.dumps(dict(rows=n_train, objects=len(groups),
                                                    mixed=len(mixed), args=vars(args), report=report),
                                               indent=1, default=str))
     return 0
@@ -380,6 +399,10 @@ def main(argv=None) -> int:
     f.add_argument("--lr", type=float, default=1e-3)
     f.add_argument("--seed", type=int, default=0)
     f.add_argument("--reports", type=int, default=6)
+    f.add_argument("--val-fraction", type=float, default=0.15,
+                   help="share of the training objects kept out to validate on")
+    f.add_argument("--no-flip", dest="flip", action="store_false",
+                   help="no mirror augmentation (x: the jaws swap; y)")
     f.add_argument("--json")
     args = ap.parse_args(argv)
     if args.command in ("make", "test"):
