@@ -100,39 +100,36 @@ def contact_maps(volume, sharpness: float = 30.0):
 
 
 def _ranker(mode: str, net_cfg):
+    """``volumes``: the project's FitnessNet with one (grasp) output; ``gaps``: ``contact_maps``
+    into a 2D CNN and the same fully connected head."""
     import flax.linen as nn
     import jax.numpy as jnp
 
-    from f2f_jax.nets.fitness import ResidualBlock
-    from f2f_jax.nets.shape import VolumeConv, batch_norm
+    from f2f_jax.nets.fitness import FitnessNet
+    from f2f_jax.nets.shape import batch_norm
 
-    class Ranker(nn.Module):
+    if mode == "volumes":
+        class Volumes(nn.Module):
+            @nn.compact
+            def __call__(self, v, *, train):
+                return FitnessNet(net_cfg, n_outputs=1, name="net")(v, train=train)[:, 0]
+        return Volumes()
+
+    class Gaps(nn.Module):
         @nn.compact
         def __call__(self, v, *, train):
             c = net_cfg
-            if mode == "gaps":
-                x = contact_maps(v)
-                for i, (w, s) in enumerate(((16, 1), (32, 2), (32, 2), (64, 2))):
-                    x = nn.Conv(w, (3, 3), strides=(s, s), padding=1, use_bias=False, name=f"g{i}")(x)
-                    x = nn.leaky_relu(batch_norm(c, train, jnp.float32, name=f"g{i}_bn")(x), c.leaky_slope)
-            else:
-                def down(x, width, kernel, name):
-                    x = VolumeConv(width, kernel, 2, kernel // 2, name=name)(x)
-                    x = batch_norm(c, train, jnp.float32, name=f"{name}_bn")(x)
-                    return nn.leaky_relu(x, c.leaky_slope)
-                x = v[..., None]
-                for stage, (width, blocks) in enumerate(zip(c.fitness_channels, c.fitness_blocks)):
-                    x = down(x, width, c.fitness_stem_kernel if stage == 0 else 3, f"down{stage}")
-                    for b in range(blocks):
-                        x = ResidualBlock(c, jnp.float32, name=f"res{stage}_{b}")(x, train=train)
-                x = down(x, c.fitness_channels[-1], 3, f"down{len(c.fitness_channels)}")
+            x = contact_maps(v)
+            for i, (w, s) in enumerate(((16, 1), (32, 2), (32, 2), (64, 2))):
+                x = nn.Conv(w, (3, 3), strides=(s, s), padding=1, use_bias=False, name=f"g{i}")(x)
+                x = nn.leaky_relu(batch_norm(c, train, jnp.float32, name=f"g{i}_bn")(x), c.leaky_slope)
             x = x.reshape(x.shape[0], -1)
             for i, width in enumerate(c.fitness_fc):
                 x = nn.Dense(width, use_bias=False, name=f"fc{i}")(x)
                 x = nn.leaky_relu(batch_norm(c, train, jnp.float32, name=f"fc{i}_bn")(x), c.leaky_slope)
             return nn.Dense(1, name="grasp")(x)[:, 0]
 
-    return Ranker()
+    return Gaps()
 
 
 # --------------------------------------------------------------------------------------------
@@ -199,9 +196,11 @@ def make(args) -> int:
                              rights=rights.astype(np.float16), feasible=feasible, grasp=grasp,
                              names=np.array(names))
                     tmp.rename(path)
-                    mixed = int((np.ptp(np.where(feasible, grasp, 0), axis=1) > 0).sum())
+                    # objects whose feasible candidates both held and failed (infeasible ones are not rows)
+                    mixed = int(((feasible & (grasp == 1)).any(1) & (feasible & (grasp == 0)).any(1)).sum())
+                    held = f"{grasp[feasible].mean():.3f}" if len(ib) else "- (no feasible candidate)"
                     print(f"{path.name}: {len(ib)} grasps in {dt:.0f} s ({len(ib) / max(dt, 1e-9):.1f}/s), "
-                          f"held {grasp[feasible].mean():.3f}, objects with both {mixed}/{len(objs)}; "
+                          f"held {held}, objects with both {mixed}/{len(objs)}; "
                           f"{total} in all [{time.time() - start:.0f} s]", flush=True)
     return 0
 
