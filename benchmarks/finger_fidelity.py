@@ -1,0 +1,127 @@
+"""How much of the imprint fingers' grasp survives the shape auto-encoder? (issue 18)
+
+The generator never outputs fingers directly: it outputs two latents, and the shape auto-encoder's
+decoder turns them into volumes. It is pretrained to put out the encoder's latents of the imprint
+fingers, so **an imprint encoded and decoded again is the best that pretraining can teach it**,
+and co-training starts from there. This script simulates, on a run's held-out objects and fresh
+ones, what the simulator thinks of each step of that chain:
+
+    python benchmarks/finger_fidelity.py --run-dir runs/cotrain --fresh 48 --seed 7 --json out.json
+
+Rows (all post-processed as designs are, all 11 trials): ``imprint`` (``geometry.imprint_fingers``),
+``imprint through the auto-encoder`` (the run's encoder means, clipped to the decoder's [-1, 1],
+decoded), the generator's own design after pretraining (``RUN/pretrained``) and after co-training
+(``RUN``). Beside the trials: each finger's volume IoU with its imprint, and the mean absolute
+difference of the height maps the simulator meshes (``geometry.finger_tiling.finger_height_map``,
+in voxels, over the columns either finger occupies), the measure that decides where the jaws touch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+if __package__ in (None, ""):
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+
+def height_gap_voxels(a: np.ndarray, b: np.ndarray, cfg=None) -> float:
+    """Mean |height map a - height map b| in voxels over the columns either finger occupies."""
+    from f2f_jax.config import GeometryConfig
+    from f2f_jax.geometry.finger_tiling import finger_height_map
+
+    g = cfg or GeometryConfig()
+    ha, hb = finger_height_map(a, g), finger_height_map(b, g)
+    cols = (ha > 0) | (hb > 0)
+    voxel = g.voxel_size
+    return float(np.abs(ha - hb)[cols].mean() / voxel) if cols.any() else 0.0
+
+
+def through_autoencoder(nets, fingers: np.ndarray) -> np.ndarray:
+    """[N, 40, 40, 40] finger volumes -> the same encoded (means) and decoded by the run's nets."""
+    import jax
+    import jax.numpy as jnp
+
+    from f2f_jax.nets.generator import FingerGenerator
+
+    gen = FingerGenerator(nets.config.net)
+
+    @jax.jit
+    def roundtrip(x):
+        z = gen.apply(nets.generator, x, method=lambda m, v: m.encoder(v, train=False)[0])
+        z = jnp.clip(z, -1.0, 1.0)  # the decoder saw latents in [-1, 1] only (the generator's tanh)
+        return gen.apply(nets.generator, z, method=lambda m, v: m.decoder(v, train=False))
+
+    return np.concatenate([np.asarray(roundtrip(jnp.asarray(fingers[i:i + 32], jnp.float32)))
+                           for i in range(0, len(fingers), 32)])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run-dir", required=True, help="a co-training run (with pretrained/)")
+    ap.add_argument("--fresh", type=int, default=48, help="fresh builtin objects beside the held-out ones")
+    ap.add_argument("--seed", type=int, default=7, help="seed of the fresh objects")
+    ap.add_argument("--json")
+    args = ap.parse_args(argv)
+
+    from f2f_jax.data import builtin_objects, held_out_objects
+    from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, postprocess
+    from f2f_jax.sim import evaluate
+    from f2f_jax.train.checkpoint import load_trained_nets
+
+    run = Path(args.run_dir)
+    nets = load_trained_nets(run)
+    g = nets.config.geometry
+    objs, names = held_out_objects(run, g)
+    if args.fresh:
+        meshes = builtin_objects(args.fresh, seed=args.seed)
+        objs = np.concatenate([objs, np.stack([mesh_to_tsdf(m, g) for m in meshes])]).astype(np.float32)
+    n = len(objs)
+    print(f"{run}: {n} objects ({n - args.fresh} held-out, {args.fresh} fresh)", flush=True)
+
+    imprints = [imprint_fingers(o, g) for o in objs]
+    rows = {"imprint": (np.stack([p[0] for p in imprints]), np.stack([p[1] for p in imprints]))}
+    rows["imprint through the auto-encoder"] = (through_autoencoder(nets, rows["imprint"][0]),
+                                                through_autoencoder(nets, rows["imprint"][1]))
+    for label, path in (("generator, pretrained", run / "pretrained"), ("generator, co-trained", run)):
+        lefts, rights = load_trained_nets(path).generate(objs)
+        rows[label] = (np.array(lefts), np.array(rights))
+
+    results = {}
+    il, ir = rows["imprint"]
+    for label, (lefts, rights) in rows.items():
+        lefts, rights = lefts.copy(), rights.copy()
+        feasible = postprocess(lefts[:, None], rights[:, None], g)[:, 0]
+        t = time.time()
+        out = np.zeros((n, nets.config.sim.n_trials), np.uint8)
+        if feasible.any():
+            out[feasible] = evaluate(objs[feasible], lefts[feasible], rights[feasible], cfg=nets.config,
+                                     progress=False)
+        iou = [float(((a < 0) & (b < 0)).sum() / max(((a < 0) | (b < 0)).sum(), 1))
+               for f, ref in ((lefts, il), (rights, ir)) for a, b in zip(f, ref)]
+        gap = [height_gap_voxels(a, b, g) for f, ref in ((lefts, il), (rights, ir))
+               for a, b, ok in zip(f, ref, feasible) if ok]
+        results[label] = dict(
+            feasible=float(feasible.mean()), grasp=float(out[:, 0].mean()), s_avg=float(out[:, 1:5].mean()),
+            r_avg=float(out[:, 5:].mean()), trials=float(out.sum(1).mean()),
+            iou_with_imprint=float(np.mean(iou)), height_gap_voxels=float(np.mean(gap)) if gap else None,
+            seconds=time.time() - t, per_object=out.sum(1).tolist())
+        r = results[label]
+        gap_text = "-" if r["height_gap_voxels"] is None else f"{r['height_gap_voxels']:.2f}"
+        print(f"{label:34s} feasible {r['feasible']:.3f}  grasp {r['grasp']:.3f}  S {r['s_avg']:.3f}  "
+              f"R {r['r_avg']:.3f}  trials {r['trials']:.2f}/11  IoU with imprint "
+              f"{r['iou_with_imprint']:.3f}  height gap {gap_text} voxels "
+              f" [{r['seconds']:.0f} s]", flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps(dict(run=str(run), n=n, fresh=args.fresh, seed=args.seed,
+                                                   rows=results), indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
