@@ -11,9 +11,12 @@ ones, what the simulator thinks of each step of that chain:
 Rows (all post-processed as designs are, all 11 trials): ``imprint`` (``geometry.imprint_fingers``),
 ``imprint through the auto-encoder`` (the run's encoder means, clipped to the decoder's [-1, 1],
 decoded), the generator's own design after pretraining (``RUN/pretrained``) and after co-training
-(``RUN``). Beside the trials: each finger's volume IoU with its imprint, and the mean absolute
-difference of the height maps the simulator meshes (``geometry.finger_tiling.finger_height_map``,
-in voxels, over the columns either finger occupies), the measure that decides where the jaws touch.
+(``RUN``), and with ``--pca K ...`` the imprints' height maps through a K-component PCA fitted
+on the run's training objects' imprints (mirrored four ways): what a code of K numbers keeps of the
+one thing about a finger the simulator uses. Beside the trials: each finger's volume IoU with its
+imprint, and the mean absolute difference of the height maps the simulator meshes
+(``geometry.finger_tiling.finger_height_map``, in voxels, over the columns either finger
+occupies), the measure that decides where the jaws touch.
 """
 
 from __future__ import annotations
@@ -42,6 +45,27 @@ def height_gap_voxels(a: np.ndarray, b: np.ndarray, cfg=None) -> float:
     return float(np.abs(ha - hb)[cols].mean() / voxel) if cols.any() else 0.0
 
 
+def finger_from_heights(heights: np.ndarray, cfg=None) -> np.ndarray:
+    """[R, R] heights over the mount (metres; < half a voxel: an empty column) -> [R, R, R] finger
+    volume, solid from the mount to each column's height (a projective TSDF along w, as imprints)."""
+    from f2f_jax.config import GeometryConfig
+
+    g = cfg or GeometryConfig()
+    h = np.where(heights >= g.voxel_size / 2, heights, -np.inf)
+    w = (np.arange(g.resolution) + 0.5) * g.voxel_size
+    return np.clip((w[None, None, :] - h[:, :, None]) / g.truncation, -1.0, 1.0).astype(np.float32)
+
+
+def pca_roundtrip(train: np.ndarray, maps: np.ndarray, k: int) -> np.ndarray:
+    """Project maps [N, ...] on the first k principal components of train [M, ...] and back."""
+    x = train.reshape(len(train), -1)
+    mean = x.mean(0)
+    _, _, vt = np.linalg.svd(x - mean, full_matrices=False)
+    basis = vt[:k]
+    y = maps.reshape(len(maps), -1) - mean
+    return ((y @ basis.T) @ basis + mean).reshape(maps.shape)
+
+
 def through_autoencoder(nets, fingers: np.ndarray) -> np.ndarray:
     """[N, 40, 40, 40] finger volumes -> the same encoded (means) and decoded by the run's nets."""
     import jax
@@ -66,6 +90,8 @@ def main(argv=None) -> int:
     ap.add_argument("--run-dir", required=True, help="a co-training run (with pretrained/)")
     ap.add_argument("--fresh", type=int, default=48, help="fresh builtin objects beside the held-out ones")
     ap.add_argument("--seed", type=int, default=7, help="seed of the fresh objects")
+    ap.add_argument("--pca", type=int, nargs="*", default=[],
+                    help="also imprints' height maps through a PCA of this many components (e.g. 16 128)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
 
@@ -88,6 +114,22 @@ def main(argv=None) -> int:
     rows = {"imprint": (np.stack([p[0] for p in imprints]), np.stack([p[1] for p in imprints]))}
     rows["imprint through the auto-encoder"] = (through_autoencoder(nets, rows["imprint"][0]),
                                                 through_autoencoder(nets, rows["imprint"][1]))
+    if args.pca:
+        from f2f_jax.data import load_or_make_objects, object_split
+        from f2f_jax.geometry.finger_tiling import finger_height_map
+
+        meta = json.loads((run / "objects" / "source.json").read_text())
+        all_objs, all_names = load_or_make_objects(
+            meta["source"], meta["n"], meta["seed"], run / "objects", g, progress=False,
+            test_fraction=meta.get("test_fraction", 0.2))
+        train = set(object_split(run / "objects")["train"])
+        maps = np.stack([finger_height_map(f, g) for i, o in enumerate(all_objs) if all_names[i] in train
+                         for f in imprint_fingers(o, g)])
+        maps = np.concatenate([maps, maps[:, ::-1], maps[:, :, ::-1], maps[:, ::-1, ::-1]])  # mirrors in u, v
+        test_maps = [np.stack([finger_height_map(f, g) for f in side]) for side in rows["imprint"]]
+        for k in args.pca:
+            rows[f"imprint heights, PCA {k} (of {len(maps)} maps)"] = tuple(
+                np.stack([finger_from_heights(h, g) for h in pca_roundtrip(maps, m, k)]) for m in test_maps)
     for label, path in (("generator, pretrained", run / "pretrained"), ("generator, co-trained", run)):
         lefts, rights = load_trained_nets(path).generate(objs)
         rows[label] = (np.array(lefts), np.array(rights))
@@ -113,7 +155,7 @@ def main(argv=None) -> int:
             seconds=time.time() - t, per_object=out.sum(1).tolist())
         r = results[label]
         gap_text = "-" if r["height_gap_voxels"] is None else f"{r['height_gap_voxels']:.2f}"
-        print(f"{label:34s} feasible {r['feasible']:.3f}  grasp {r['grasp']:.3f}  S {r['s_avg']:.3f}  "
+        print(f"{label:40s} feasible {r['feasible']:.3f}  grasp {r['grasp']:.3f}  S {r['s_avg']:.3f}  "
               f"R {r['r_avg']:.3f}  trials {r['trials']:.2f}/11  IoU with imprint "
               f"{r['iou_with_imprint']:.3f}  height gap {gap_text} voxels "
               f" [{r['seconds']:.0f} s]", flush=True)

@@ -18,3 +18,26 @@ def test_height_gap_counts_voxels_of_height_where_either_finger_stands(sphere_ts
     assert fidelity.height_gap_voxels(np.roll(pad, 2, axis=2), pad) == pytest.approx(2.0, abs=1e-6)
     # the imprint against the pad: the imprint's relief differs, several voxels of it
     assert fidelity.height_gap_voxels(pad, left) > 1.0
+
+
+def test_a_finger_rebuilt_from_its_height_map_keeps_it(sphere_tsdf):
+    from f2f_jax.geometry import imprint_fingers
+    from f2f_jax.geometry.finger_tiling import finger_height_map
+
+    left, right = imprint_fingers(sphere_tsdf)
+    for finger in (left, right):
+        heights = finger_height_map(finger)
+        rebuilt = fidelity.finger_from_heights(heights)
+        # every column within half a voxel (the imprint's TSDF is not linear along w, so the
+        # interpolated surface moves a little), the solid voxels the same but for a few
+        gap = np.abs(finger_height_map(rebuilt) - heights) / 0.0015
+        assert gap.max() < 0.5 and fidelity.height_gap_voxels(rebuilt, finger) < 0.2
+        assert ((rebuilt < 0) != (finger < 0)).mean() < 0.01
+
+
+def test_pca_roundtrip_is_exact_at_full_rank_and_lossy_below(rng):
+    train = rng.normal(size=(20, 6, 5))
+    np.testing.assert_allclose(fidelity.pca_roundtrip(train, train[:3], 20), train[:3], atol=1e-9)
+    coarse = fidelity.pca_roundtrip(train, train[:3], 2)
+    fine = fidelity.pca_roundtrip(train, train[:3], 10)
+    assert np.abs(fine - train[:3]).mean() < np.abs(coarse - train[:3]).mean()
