@@ -11,7 +11,9 @@ ones, what the simulator thinks of each step of that chain:
 Rows (all post-processed as designs are, all 11 trials): ``imprint`` (``geometry.imprint_fingers``),
 ``imprint through the auto-encoder`` (the run's encoder means, clipped to the decoder's [-1, 1],
 decoded), the generator's own design after pretraining (``RUN/pretrained``) and after co-training
-(``RUN``), and with ``--pca K ...`` the imprints' height maps through a K-component PCA fitted
+(``RUN``); with ``--learned-heights STEPS`` a generator that decodes height maps instead, trained
+on the run's training objects' imprints (``--extra-objects N`` more builtin ones: imprints cost no
+simulation); and with ``--pca K ...`` the imprints' height maps through a K-component PCA fitted
 on the run's training objects' imprints (mirrored four ways): what a code of K numbers keeps of the
 one thing about a finger the simulator uses. Beside the trials: each finger's volume IoU with its
 imprint, and the mean absolute difference of the height maps the simulator meshes
@@ -28,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm.auto import tqdm
 
 if __package__ in (None, ""):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -85,6 +88,67 @@ def through_autoencoder(nets, fingers: np.ndarray) -> np.ndarray:
                            for i in range(0, len(fingers), 32)])
 
 
+def imprint_height_targets(objects: np.ndarray, cfg=None) -> np.ndarray:
+    """[N, 40, 40, 40] objects -> [N, 40, 40, 2] their imprint fingers' height maps in voxels, both
+    indexed [world y, world z] (the right finger's u runs along -y, so its map is flipped)."""
+    from f2f_jax.config import GeometryConfig
+    from f2f_jax.geometry import imprint_fingers
+    from f2f_jax.geometry.finger_tiling import finger_height_map
+
+    g = cfg or GeometryConfig()
+    out = np.zeros((len(objects), g.resolution, g.resolution, 2), np.float32)
+    for i, o in enumerate(objects):
+        left, right = imprint_fingers(o, g)
+        out[i, ..., 0] = finger_height_map(left, g) / g.voxel_size
+        out[i, ..., 1] = finger_height_map(right, g)[::-1] / g.voxel_size
+    return out
+
+
+def train_height_generator(objects: np.ndarray, targets: np.ndarray, steps: int, seed: int = 0,
+                           batch: int = 32):
+    """A column-local generator, object -> both fingers' height maps: the object's x planes as the
+    channels of a 2D CNN over (y, z) (three 3 x 3 layers of 64, then 1 x 1 to two maps), trained
+    with Adam (L1 in voxels) on objects [N, 40, 40, 40] and targets [N, 40, 40, 2].
+    Returns (predict: objects -> heights [N, 40, 40, 2] in voxels, final training L1)."""
+    import flax.linen as nn
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    class Heights(nn.Module):
+        @nn.compact
+        def __call__(self, x):
+            for width in (64, 64, 64):
+                x = nn.leaky_relu(nn.Conv(width, (3, 3), padding=1)(x), 0.2)
+            return nn.Conv(2, (1, 1))(x) * 10.0 + 10.0  # heights are 0-40 voxels, most near 10-20
+
+    def planes(o):  # [B, x, y, z] -> [B, y, z, x]
+        return jnp.transpose(jnp.asarray(o, jnp.float32), (0, 2, 3, 1))
+
+    model = Heights()
+    params = model.init(jax.random.PRNGKey(seed), planes(objects[:1]))
+    opt = optax.adamw(1e-3, weight_decay=1e-5)
+    state = opt.init(params)
+
+    @jax.jit
+    def step(params, state, x, y):
+        loss, grads = jax.value_and_grad(lambda q: jnp.mean(jnp.abs(model.apply(q, planes(x)) - y)))(params)
+        updates, state = opt.update(grads, state, params)
+        return optax.apply_updates(params, updates), state, loss
+
+    rng = np.random.default_rng(seed)
+    loss = np.nan
+    for _ in range(steps):
+        b = rng.choice(len(objects), min(batch, len(objects)), replace=False)
+        params, state, loss = step(params, state, objects[b].astype(np.float32), targets[b])
+    apply = jax.jit(lambda x: model.apply(params, planes(x)))
+
+    def predict(objs):
+        return np.concatenate([np.asarray(apply(objs[i:i + batch].astype(np.float32)))
+                               for i in range(0, len(objs), batch)])
+    return predict, float(loss)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run-dir", required=True, help="a co-training run (with pretrained/)")
@@ -92,6 +156,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=7, help="seed of the fresh objects")
     ap.add_argument("--pca", type=int, nargs="*", default=[],
                     help="also imprints' height maps through a PCA of this many components (e.g. 16 128)")
+    ap.add_argument("--learned-heights", type=int, default=0, metavar="STEPS",
+                    help="also a column-local CNN trained for STEPS steps on the run's training objects' "
+                         "imprint height maps (a generator that decodes height maps, after pretraining)")
+    ap.add_argument("--extra-objects", type=int, default=0,
+                    help="builtin objects (seed 11) added to the learned generator's training")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
 
@@ -114,7 +183,7 @@ def main(argv=None) -> int:
     rows = {"imprint": (np.stack([p[0] for p in imprints]), np.stack([p[1] for p in imprints]))}
     rows["imprint through the auto-encoder"] = (through_autoencoder(nets, rows["imprint"][0]),
                                                 through_autoencoder(nets, rows["imprint"][1]))
-    if args.pca:
+    if args.pca or args.learned_heights:
         from f2f_jax.data import load_or_make_objects, object_split
         from f2f_jax.geometry.finger_tiling import finger_height_map
 
@@ -123,13 +192,29 @@ def main(argv=None) -> int:
             meta["source"], meta["n"], meta["seed"], run / "objects", g, progress=False,
             test_fraction=meta.get("test_fraction", 0.2))
         train = set(object_split(run / "objects")["train"])
-        maps = np.stack([finger_height_map(f, g) for i, o in enumerate(all_objs) if all_names[i] in train
-                         for f in imprint_fingers(o, g)])
+        train_objs = np.stack([o for o, name in zip(all_objs, all_names) if name in train]).astype(np.float32)
+    if args.pca:
+        maps = np.stack([finger_height_map(f, g) for o in train_objs for f in imprint_fingers(o, g)])
         maps = np.concatenate([maps, maps[:, ::-1], maps[:, :, ::-1], maps[:, ::-1, ::-1]])  # mirrors in u, v
         test_maps = [np.stack([finger_height_map(f, g) for f in side]) for side in rows["imprint"]]
         for k in args.pca:
             rows[f"imprint heights, PCA {k} (of {len(maps)} maps)"] = tuple(
                 np.stack([finger_from_heights(h, g) for h in pca_roundtrip(maps, m, k)]) for m in test_maps)
+    if args.learned_heights:
+        if args.extra_objects:
+            extra = builtin_objects(args.extra_objects, seed=11)
+            train_objs = np.concatenate([train_objs, np.stack([
+                mesh_to_tsdf(m, g) for m in tqdm(extra, desc="extra objects -> TSDF", unit="obj")])])
+        t = time.time()
+        predict, loss = train_height_generator(train_objs, imprint_height_targets(train_objs, g),
+                                               args.learned_heights)
+        heights = predict(objs) * g.voxel_size
+        test_l1 = np.abs(heights / g.voxel_size - imprint_height_targets(objs, g)).mean()
+        print(f"height-map generator: {len(train_objs)} objects, {args.learned_heights} steps, "
+              f"{time.time() - t:.0f} s; L1 train {loss:.2f}, test {test_l1:.2f} voxels", flush=True)
+        rows[f"height-map generator ({len(train_objs)} objects, {args.learned_heights} steps)"] = (
+            np.stack([finger_from_heights(h, g) for h in heights[..., 0]]),
+            np.stack([finger_from_heights(h[::-1], g) for h in heights[..., 1]]))
     for label, path in (("generator, pretrained", run / "pretrained"), ("generator, co-trained", run)):
         lefts, rights = load_trained_nets(path).generate(objs)
         rows[label] = (np.array(lefts), np.array(rights))
