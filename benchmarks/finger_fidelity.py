@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import textwrap
 import time
 from pathlib import Path
 
@@ -149,6 +150,39 @@ def train_height_generator(objects: np.ndarray, targets: np.ndarray, steps: int,
     return predict, float(loss)
 
 
+def height_map_picture(rows: dict, objects: np.ndarray, path, n: int = 4, cfg=None) -> None:
+    """A PNG grid: for the first n objects (rows), each kind of left finger's height map (columns),
+    in voxels over the mount, with the trials the pair passed in the title.  rows: label ->
+    (left fingers [N, 40, 40, 40], trials passed [N])."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from f2f_jax.config import GeometryConfig
+    from f2f_jax.errors import VolumeError
+    from f2f_jax.geometry.finger_tiling import finger_height_map
+
+    g = cfg or GeometryConfig()
+    labels = list(rows)
+    n = min(n, len(objects))
+    fig = Figure(figsize=(2.2 * len(labels), 2.3 * n))
+    FigureCanvasAgg(fig)
+    for i in range(n):
+        for j, label in enumerate(labels):
+            (fingers, trials) = rows[label]
+            ax = fig.add_subplot(n, len(labels), i * len(labels) + j + 1)
+            try:
+                heights = finger_height_map(fingers[i], g) / g.voxel_size
+            except VolumeError:  # an empty (infeasible) finger
+                heights = np.zeros((g.resolution, g.resolution))
+            im = ax.imshow(heights.T, origin="lower", vmin=0, vmax=g.resolution, cmap="viridis")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            title = f"{textwrap.fill(label, 24)}\n{trials[i]}/11" if i == 0 else f"{trials[i]}/11"
+            ax.set_title(title, fontsize=7)
+    fig.colorbar(im, ax=fig.axes, shrink=0.6, label="left finger height over the mount (voxels)")
+    fig.savefig(path, dpi=110)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run-dir", required=True, help="a co-training run (with pretrained/)")
@@ -161,6 +195,7 @@ def main(argv=None) -> int:
                          "imprint height maps (a generator that decodes height maps, after pretraining)")
     ap.add_argument("--extra-objects", type=int, default=0,
                     help="builtin objects (seed 11) added to the learned generator's training")
+    ap.add_argument("--png", help="a picture of the first objects' left-finger height maps, row by row")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
 
@@ -219,11 +254,12 @@ def main(argv=None) -> int:
         lefts, rights = load_trained_nets(path).generate(objs)
         rows[label] = (np.array(lefts), np.array(rights))
 
-    results = {}
+    results, processed = {}, {}
     il, ir = rows["imprint"]
     for label, (lefts, rights) in rows.items():
         lefts, rights = lefts.copy(), rights.copy()
         feasible = postprocess(lefts[:, None], rights[:, None], g)[:, 0]
+        processed[label] = lefts
         t = time.time()
         out = np.zeros((n, nets.config.sim.n_trials), np.uint8)
         if feasible.any():
@@ -244,6 +280,10 @@ def main(argv=None) -> int:
               f"R {r['r_avg']:.3f}  trials {r['trials']:.2f}/11  IoU with imprint "
               f"{r['iou_with_imprint']:.3f}  height gap {gap_text} voxels "
               f" [{r['seconds']:.0f} s]", flush=True)
+    if args.png:
+        height_map_picture({label: (processed[label], results[label]["per_object"]) for label in rows}, objs,
+                           args.png, cfg=g)
+        print(f"picture: {args.png}", flush=True)
     if args.json:
         Path(args.json).write_text(json.dumps(dict(run=str(run), n=n, fresh=args.fresh, seed=args.seed,
                                                    rows=results), indent=1))
