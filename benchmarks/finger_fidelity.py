@@ -198,6 +198,8 @@ def main(argv=None) -> int:
     ap.add_argument("--png", help="a picture of the first objects' left-finger height maps, row by row")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
+    if args.extra_objects and not args.learned_heights:
+        ap.error("--extra-objects trains the height-map generator: give --learned-heights STEPS too")
 
     from f2f_jax.data import builtin_objects, held_out_objects
     from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, postprocess
@@ -237,9 +239,12 @@ def main(argv=None) -> int:
                 np.stack([finger_from_heights(h, g) for h in pca_roundtrip(maps, m, k)]) for m in test_maps)
     if args.learned_heights:
         if args.extra_objects:
-            extra = builtin_objects(args.extra_objects, seed=11)
-            train_objs = np.concatenate([train_objs, np.stack([
-                mesh_to_tsdf(m, g) for m in tqdm(extra, desc="extra objects -> TSDF", unit="obj")])])
+            meshes = tqdm(builtin_objects(args.extra_objects, seed=11), desc="extra objects -> TSDF",
+                          unit="obj")
+            extra = np.stack([mesh_to_tsdf(m, g) for m in meshes])
+            tested = {o.astype(np.float16).tobytes() for o in objs}  # never train on a test object
+            keep = [o.astype(np.float16).tobytes() not in tested for o in extra]
+            train_objs = np.concatenate([train_objs, extra[keep]])
         t = time.time()
         predict, loss = train_height_generator(train_objs, imprint_height_targets(train_objs, g),
                                                args.learned_heights)
