@@ -56,3 +56,15 @@ def test_height_map_generator_learns_the_imprint_of_unseen_objects(sphere_tsdf):
     trained, loss = fidelity.train_height_generator(train, targets, steps=150, batch=12)
     assert np.abs(untrained(test) - truth).mean() > 5.0
     assert loss < 1.5 and np.abs(trained(test) - truth).mean() < 1.5
+
+
+def test_height_map_picture_is_written_and_survives_an_empty_finger(tmp_path, sphere_tsdf):
+    from f2f_jax.geometry import imprint_fingers, wsg50_fingers
+
+    left, _ = imprint_fingers(sphere_tsdf)
+    pad, _ = wsg50_fingers()
+    empty = np.ones_like(pad)  # an infeasible design: nothing solid
+    rows = {"imprint": (np.stack([left, left]), [11, 9]), "a design": (np.stack([pad, empty]), [3, 0])}
+    path = tmp_path / "heights.png"
+    fidelity.height_map_picture(rows, np.stack([sphere_tsdf, sphere_tsdf]), path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and path.stat().st_size > 5000
