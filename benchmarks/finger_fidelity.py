@@ -89,20 +89,26 @@ def through_autoencoder(nets, fingers: np.ndarray) -> np.ndarray:
                            for i in range(0, len(fingers), 32)])
 
 
-def imprint_height_targets(objects: np.ndarray, cfg=None) -> np.ndarray:
-    """[N, 40, 40, 40] objects -> [N, 40, 40, 2] their imprint fingers' height maps in voxels, both
-    indexed [world y, world z] (the right finger's u runs along -y, so its map is flipped)."""
+def height_targets(lefts: np.ndarray, rights: np.ndarray, cfg=None) -> np.ndarray:
+    """Finger pairs [N, 40, 40, 40] x2 -> [N, 40, 40, 2] their height maps in voxels, both indexed
+    [world y, world z] (the right finger's u runs along -y, so its map is flipped)."""
     from f2f_jax.config import GeometryConfig
-    from f2f_jax.geometry import imprint_fingers
     from f2f_jax.geometry.finger_tiling import finger_height_map
 
     g = cfg or GeometryConfig()
-    out = np.zeros((len(objects), g.resolution, g.resolution, 2), np.float32)
-    for i, o in enumerate(objects):
-        left, right = imprint_fingers(o, g)
+    out = np.zeros((len(lefts), g.resolution, g.resolution, 2), np.float32)
+    for i, (left, right) in enumerate(zip(lefts, rights)):
         out[i, ..., 0] = finger_height_map(left, g) / g.voxel_size
         out[i, ..., 1] = finger_height_map(right, g)[::-1] / g.voxel_size
     return out
+
+
+def imprint_height_targets(objects: np.ndarray, cfg=None) -> np.ndarray:
+    """[N, 40, 40, 40] objects -> [N, 40, 40, 2] their imprint fingers' ``height_targets``."""
+    from f2f_jax.geometry import imprint_fingers
+
+    pairs = [imprint_fingers(o, cfg) for o in objects]
+    return height_targets([p[0] for p in pairs], [p[1] for p in pairs], cfg)
 
 
 def train_height_generator(objects: np.ndarray, targets: np.ndarray, steps: int, seed: int = 0,
@@ -221,13 +227,10 @@ def main(argv=None) -> int:
     rows["imprint through the auto-encoder"] = (through_autoencoder(nets, rows["imprint"][0]),
                                                 through_autoencoder(nets, rows["imprint"][1]))
     if args.pca or args.learned_heights:
-        from f2f_jax.data import load_or_make_objects, object_split
+        from f2f_jax.data import object_split, run_objects
         from f2f_jax.geometry.finger_tiling import finger_height_map
 
-        meta = json.loads((run / "objects" / "source.json").read_text())
-        all_objs, all_names = load_or_make_objects(
-            meta["source"], meta["n"], meta["seed"], run / "objects", g, progress=False,
-            test_fraction=meta.get("test_fraction", 0.2))
+        all_objs, all_names = run_objects(run, g)
         train = set(object_split(run / "objects")["train"])
         train_objs = np.stack([o for o, name in zip(all_objs, all_names) if name in train]).astype(np.float32)
     if args.pca:
@@ -249,7 +252,7 @@ def main(argv=None) -> int:
         predict, loss = train_height_generator(train_objs, imprint_height_targets(train_objs, g),
                                                args.learned_heights)
         heights = predict(objs) * g.voxel_size
-        test_l1 = np.abs(heights / g.voxel_size - imprint_height_targets(objs, g)).mean()
+        test_l1 = np.abs(heights / g.voxel_size - height_targets(*rows["imprint"], g)).mean()
         print(f"height-map generator: {len(train_objs)} objects, {args.learned_heights} steps, "
               f"{time.time() - t:.0f} s; L1 train {loss:.2f}, test {test_l1:.2f} voxels", flush=True)
         rows[f"height-map generator ({len(train_objs)} objects, {args.learned_heights} steps)"] = (

@@ -140,19 +140,9 @@ def _digest(volume: np.ndarray) -> str:
     return hashlib.sha1(np.asarray(volume, np.float16).tobytes()).hexdigest()
 
 
-def _run_objects(run: Path, geometry):
-    from f2f_jax.data.object_set import load_or_make_objects
-
-    meta = json.loads((run / "objects" / "source.json").read_text())
-    tsdfs, names = load_or_make_objects(meta["source"], meta["n"], meta["seed"], run / "objects",
-                                        geometry, progress=False,
-                                        test_fraction=meta.get("test_fraction", 0.2))
-    return tsdfs, list(names)
-
-
 def make(args) -> int:
     from f2f_jax.config import default
-    from f2f_jax.data import held_out_objects
+    from f2f_jax.data import held_out_objects, run_objects
     from f2f_jax.geometry import postprocess
     from f2f_jax.nets.inference import propose
     from f2f_jax.sim import evaluate
@@ -166,7 +156,7 @@ def make(args) -> int:
     banned = {_digest(o) for o in test_objs}
     objects = {}
     for i, run in enumerate(map(Path, args.runs)):
-        tsdfs, names = _run_objects(run, geometry)
+        tsdfs, names = run_objects(run, geometry)
         keep = [j for j, o in enumerate(tsdfs) if _digest(o) not in banned]
         objects[i] = (tsdfs[keep][: args.objects_per_run], [names[j] for j in keep][: args.objects_per_run])
         print(f"run {run}: {len(keep)} of {len(tsdfs)} objects (the rest are the test's)", flush=True)
@@ -313,25 +303,33 @@ def fit(args) -> int:
                            train=False)
 
     n_obj, k = test_set["feasible"].shape
-    t_obj = np.repeat(test_set["objects"], k, 0)
     t_left = test_set["lefts"].reshape(n_obj * k, 40, 40, 40)
     t_right = test_set["rights"].reshape(n_obj * k, 40, 40, 40)
     simulated = test_set["simulated"].astype(np.float64)
+    val_rows = np.concatenate([rows for _, rows in val]) if val else np.zeros(0, int)
+
+    def scores(obj_table, obj_of_row, left_table, right_table, rows, chunk=64):
+        """The ranker's logits of ``rows`` (their object ``obj_table[obj_of_row]``), ``chunk`` at a
+        time, the last chunk padded with its final row so that one compiled shape serves all."""
+        out = []
+        for i in range(0, len(rows), chunk):
+            r, o = rows[i:i + chunk], obj_of_row[i:i + chunk]
+            pad = np.concatenate([np.arange(len(r)), np.full(chunk - len(r), len(r) - 1)])
+            got = score(params, stats, *(jnp.asarray(a[pad], jnp.float32) for a in (
+                obj_table[o], left_table[r], right_table[r])))
+            out.append(np.asarray(got)[:len(r)])
+        return np.concatenate(out) if out else np.zeros(0, np.float32)
 
     def evaluate():
-        s = np.concatenate([np.asarray(score(params, stats, *(jnp.asarray(a[i:i + 64], jnp.float32)
-                                                              for a in (t_obj, t_left, t_right))))
-                            for i in range(0, n_obj * k, 64)]).reshape(n_obj, k)
+        s = scores(test_set["objects"], np.repeat(np.arange(n_obj), k), t_left, t_right,
+                   np.arange(n_obj * k)).reshape(n_obj, k)
         prob = np.where(test_set["feasible"], 1 / (1 + np.exp(-s)), 0.0)
         out = ranking_stats(np.repeat(prob[..., None], simulated.shape[-1], -1), simulated)
         out["within_auc"], out["within_objects"] = within_object_auc(prob, simulated[..., 0],
                                                                      test_set["feasible"])
-        aucs = []
-        for o, rows in val:
-            s = np.concatenate([np.asarray(score(params, stats, *(jnp.asarray(a, jnp.float32) for a in (
-                np.repeat(objects[o][None], len(rows[i:i + 64]), 0), lefts[rows[i:i + 64]],
-                rights[rows[i:i + 64]])))) for i in range(0, len(rows), 64)])
-            aucs.append(within_object_auc(s[None], labels[rows][None])[0])
+        v = np.split(scores(objects, row_object[val_rows], lefts, rights, val_rows),
+                     np.cumsum([len(rows) for _, rows in val])[:-1])
+        aucs = [within_object_auc(sv[None], labels[rows][None])[0] for sv, (_, rows) in zip(v, val)]
         out["val_auc"] = float(np.mean(aucs)) if aucs else float("nan")
         return out
 

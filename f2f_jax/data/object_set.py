@@ -62,17 +62,24 @@ def object_split(directory) -> dict[str, list[str]]:
     return load_split(Path(directory) / "split.json")
 
 
-def held_out_objects(run_dir, cfg: GeometryConfig | None = None) -> tuple[np.ndarray, list[str]]:
-    """A co-training run's held-out object volumes [N, R, R, R] and names, in the run's order (the
-    set in ``run_dir/objects``, remade from its record if its volumes are missing)."""
+def run_objects(run_dir, cfg: GeometryConfig | None = None) -> tuple[np.ndarray, list[str]]:
+    """A co-training run's whole object set, volumes [N, R, R, R] and names in the set's order
+    (``run_dir/objects``, remade from its record if its volumes are missing); ``object_split(
+    run_dir / "objects")`` says which are held out."""
     directory = Path(run_dir) / "objects"
     meta_path = directory / "source.json"
     if not meta_path.exists():
         raise FileNotFoundError(f"{directory} holds no object set (no source.json): is {run_dir} a "
                                 "co-training run directory?")
     meta = json.loads(meta_path.read_text())
-    tsdfs, names = load_or_make_objects(meta["source"], meta["n"], meta["seed"], directory, cfg,
-                                        progress=False, test_fraction=meta.get("test_fraction", 0.2))
+    return load_or_make_objects(meta["source"], meta["n"], meta["seed"], directory, cfg,
+                                progress=False, test_fraction=meta.get("test_fraction", 0.2))
+
+
+def held_out_objects(run_dir, cfg: GeometryConfig | None = None) -> tuple[np.ndarray, list[str]]:
+    """A co-training run's held-out object volumes [N, R, R, R] and names, in the order of its
+    split (``run_objects``' set)."""
+    tsdfs, names = run_objects(run_dir, cfg)
     index = {name: i for i, name in enumerate(names)}
-    test = [index[n] for n in object_split(directory)["test"] if n in index]
+    test = [index[n] for n in object_split(Path(run_dir) / "objects")["test"] if n in index]
     return tsdfs[np.array(test, int)], [names[i] for i in test]
