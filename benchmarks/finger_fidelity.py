@@ -208,7 +208,7 @@ def main(argv=None) -> int:
         ap.error("--extra-objects trains the height-map generator: give --learned-heights STEPS too")
 
     from f2f_jax.data import builtin_objects, held_out_objects
-    from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, postprocess
+    from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf, postprocess, solid_iou
     from f2f_jax.sim import evaluate
     from f2f_jax.train.checkpoint import load_trained_nets
 
@@ -273,8 +273,7 @@ def main(argv=None) -> int:
         if feasible.any():
             out[feasible] = evaluate(objs[feasible], lefts[feasible], rights[feasible], cfg=nets.config,
                                      progress=False)
-        iou = [float(((a < 0) & (b < 0)).sum() / max(((a < 0) | (b < 0)).sum(), 1))
-               for f, ref in ((lefts, il), (rights, ir)) for a, b in zip(f, ref)]
+        iou = np.concatenate([solid_iou(lefts, il), solid_iou(rights, ir)])
         gap = [height_gap_voxels(a, b, g) for f, ref in ((lefts, il), (rights, ir))
                for a, b, ok in zip(f, ref, feasible) if ok]
         results[label] = dict(

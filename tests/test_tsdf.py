@@ -108,3 +108,16 @@ def test_bad_volumes_raise_clear_errors(arr, match):
         check_tsdf(arr)
     with pytest.raises(VolumeError, match=match):
         tsdf_to_mesh(arr)
+
+
+def test_solid_iou_per_volume():
+    from f2f_jax.geometry import solid_iou
+
+    a = np.ones((2, 4, 4, 4), np.float32)
+    a[0, :2] = -1  # half the cube solid
+    a[1, :1] = -1  # a quarter
+    b = np.ones_like(a)
+    b[:, :1] = -1  # a quarter in both
+    np.testing.assert_allclose(solid_iou(a, b), [0.5, 1.0])
+    assert solid_iou(a[0], a[0]) == 1.0
+    assert solid_iou(np.ones((4, 4, 4)), np.ones((4, 4, 4))) == 0.0  # two empty volumes

@@ -196,3 +196,11 @@ def marching_cubes_mesh(volume: np.ndarray, voxel_size: float, origin: np.ndarra
 def solid(tsdf) -> np.ndarray:
     """Boolean occupancy (tsdf < 0)."""
     return np.asarray(tsdf) < 0
+
+
+def solid_iou(a, b) -> np.ndarray:
+    """IoU of the solid voxels of volumes a and b, [..., R, R, R] each: [...] float64 (two empty
+    volumes count as 0)."""
+    sa, sb = solid(a), solid(b)
+    inter = (sa & sb).sum(axis=(-3, -2, -1))
+    return inter / np.maximum((sa | sb).sum(axis=(-3, -2, -1)), 1)

@@ -19,6 +19,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from f2f_jax.config import Config
+from f2f_jax.geometry import solid_iou
 from f2f_jax.nets import FingerGenerator, FitnessNet, ShapeAutoEncoder, fitness_input
 from f2f_jax.nets.inference import generate
 from f2f_jax.train.losses import (
@@ -256,7 +257,4 @@ def reconstruction_iou(cfg: Config, ae_variables: dict, volumes: np.ndarray) -> 
     f, bs = ae_reconstruct(cfg), cfg.train.ae_batch_size
     recon = np.concatenate([np.asarray(f(ae_variables, shard(volumes[s:s + bs])))
                             for s in range(0, len(volumes), bs)])
-    a, b = volumes < 0, recon < 0
-    inter = (a & b).sum(axis=(1, 2, 3))
-    union = np.maximum((a | b).sum(axis=(1, 2, 3)), 1)
-    return float(np.mean(inter / union))
+    return float(np.mean(solid_iou(volumes, recon)))
