@@ -224,8 +224,9 @@ def main(argv=None) -> int:
 
     imprints = [imprint_fingers(o, g) for o in objs]
     rows = {"imprint": (np.stack([p[0] for p in imprints]), np.stack([p[1] for p in imprints]))}
-    rows["imprint through the auto-encoder"] = (through_autoencoder(nets, rows["imprint"][0]),
-                                                through_autoencoder(nets, rows["imprint"][1]))
+    if "encoder" in nets.generator["params"]:  # a height-map generator's run has no codec in it
+        rows["imprint through the auto-encoder"] = (through_autoencoder(nets, rows["imprint"][0]),
+                                                    through_autoencoder(nets, rows["imprint"][1]))
     if args.pca or args.learned_heights:
         from f2f_jax.data import object_split, run_objects
         from f2f_jax.geometry.finger_tiling import finger_height_map

@@ -166,6 +166,16 @@ class NetConfig:
     # Kernel edge of each transposed convolution; empty: 3 for every layer (paper).
     decoder_kernels: tuple[int, ...] = ()
     generator_fc: tuple[int, ...] = (2096, 4096)
+    # What the generator writes (``nets.generator_module``): "latent", the paper's two finger
+    # latents read by the frozen shape decoder (``FingerGenerator``), or "heights", each finger's
+    # height map over its mount written column by column from the object's planes
+    # (``HeightGenerator``: no decoder between the generator and the fingers the simulator meshes).
+    generator: str = "latent"
+    # HeightGenerator: widths of its 3 x 3 convolutions over the (y, z) grid, and the truncation
+    # (voxels) of the finger TSDFs it writes: the geometry's, so the fitness net sees imprint-like
+    # volumes (GeometryConfig.truncation_voxels).
+    height_channels: tuple[int, ...] = (64, 64, 64)
+    height_truncation_voxels: float = 5.0
     # Fitness ResNet: one stride-2 conv per stage (the first 5^3, pad 2), then fitness_blocks
     # residual blocks at that width; a last stride-2 conv at the last width: 120x40x40 -> 1x1x1.
     fitness_channels: tuple[int, ...] = (32, 64, 128, 256, 512, 1024)
@@ -187,6 +197,9 @@ class TrainConfig:
     fn_epochs: int = 100
     fn_batch_size: int = 64
     gn_epochs: int = 100
+    # Shuffled passes over the imprint pairs per generator-pretraining epoch (each capped at
+    # max_steps_per_epoch steps): more steps without a checkpoint after each pass.
+    gn_passes: int = 1
     cycles: int = 20
     objects_per_cycle: int = 512  # paper
     cotrain_batch_size: int = 32  # 16 new + 16 pretrain (paper)

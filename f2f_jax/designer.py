@@ -9,8 +9,10 @@ How a design is chosen, per object:
 1. The generator maps the object to two finger latents; candidate 0 decodes them as they are, the
    other ``candidates - 1`` add Gaussian noise (standard deviation ``noise``, default
    ``nets.inference.LATENT_NOISE`` = 0.2, i.e. 0.1 of the latents' [-1, 1] range, clipped back
-   into it) to each finger latent before the frozen decoder.  All objects and all candidates go through the
-   generator in one jitted call.
+   into it) to each finger latent before the frozen decoder.  A height-map generator
+   (``net.generator = "heights"``) writes the two fingers' height maps instead, and its candidates
+   add a smooth random field to each (``nets.inference.code_noise``).  All objects and all
+   candidates go through the generator in one jitted call.
 2. Each finger keeps its largest face-connected component and is checked for feasibility
    (``geometry.postprocess``), as in co-training.
 3. The fitness net predicts the 11 outcome probabilities of every candidate (one jitted call).
@@ -49,6 +51,7 @@ IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (
     ("imprint", 0.0), ("imprint, 1 voxel looser", 1.0), ("imprint, 1 voxel tighter", -1.0))
 GENERATOR = "generator"
 GENERATOR_NOISE = "generator + latent noise"
+GENERATOR_HEIGHT_NOISE = "generator + height noise"  # a height-map generator's candidates
 
 
 class InfeasibleDesignWarning(UserWarning):
@@ -67,7 +70,8 @@ class FingerPair:
     candidate: which of the ``n_candidates`` it was (0: the generator's own output);
     n_feasible: how many candidates were feasible; source: the nets' checkpoint.
     origin: where the candidate came from: "generator" (its own output), "generator + latent
-        noise", or one of the ``IMPRINT_VARIANTS`` ("imprint", ...).
+        noise" ("generator + height noise" for a height-map generator), or one of the
+        ``IMPRINT_VARIANTS`` ("imprint", ...).
     """
 
     left: np.ndarray
@@ -166,7 +170,9 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         by simulated outcome first; executor: that call's (``sim.evaluate``: "threads" or "ray").
     imprint: also put the object's imprint pair and its variants (``IMPRINT_VARIANTS``) in the
         pool, after the K generated candidates; None (default): when ``verify``.
-    noise: standard deviation of the latent noise (latent units; the latents span [-1, 1]).
+    noise: standard deviation of the latent noise (latent units; the latents span [-1, 1]); for a
+        height-map generator (``net.generator = "heights"``) the noise of a smooth field added to
+        each height map, ``noise x nets.inference.HEIGHT_NOISE_VOXELS`` voxels.
     progress: the simulation's progress bar with ``verify`` (None: ``sim.evaluate``'s default).
 
     Raises VolumeError for a wrong shape, NaN/inf values or an empty or all-inside volume (naming
@@ -192,7 +198,8 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         imprint = verify
 
     lefts, rights = propose(nets, objects, key, candidates, noise)
-    origins = [GENERATOR] + [GENERATOR_NOISE] * (candidates - 1)
+    noisy = GENERATOR_HEIGHT_NOISE if nets.config.net.generator == "heights" else GENERATOR_NOISE
+    origins = [GENERATOR] + [noisy] * (candidates - 1)
     if imprint:
         imp_lefts, imp_rights = imprint_candidates(objects, g)
         lefts = np.concatenate([lefts, imp_lefts], axis=1)

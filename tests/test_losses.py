@@ -10,7 +10,6 @@ from f2f_jax.train.losses import (
     OBJECTIVE_MASKS,
     fitness_loss,
     generator_loss,
-    imprint_latent_loss,
     kl_divergence,
     vae_loss,
 )
@@ -94,12 +93,3 @@ def test_vae_loss_and_kl():
     assert float(vae_loss(recon, target, mu + 1, logvar, kl_weight=0.1)) == pytest.approx(
         mse + 0.05, rel=1e-5)
     assert float(vae_loss(target, target, mu, logvar, kl_weight=1.0)) == pytest.approx(0.0, abs=1e-7)
-
-
-def test_imprint_latent_loss():
-    a = jnp.zeros((3, 5))
-    b = jnp.full((3, 5), 0.5)
-    assert float(imprint_latent_loss(a, b)) == pytest.approx(0.25)
-    assert float(imprint_latent_loss(b, b)) == 0.0
-    with pytest.raises(ValueError, match="differ in shape"):
-        imprint_latent_loss(a, jnp.zeros((3, 6)))

@@ -21,7 +21,15 @@ from f2f_jax.nets.fitness import (
     left_to_world,
     right_to_world,
 )
-from f2f_jax.nets.generator import FingerGenerator, Generator
+from f2f_jax.nets.generator import (
+    GENERATORS,
+    FingerGenerator,
+    Generator,
+    HeightGenerator,
+    generator_module,
+    heights_to_tsdf,
+    tsdf_heights,
+)
 from f2f_jax.nets.shape import (
     RESOLUTION,
     ShapeAutoEncoder,
@@ -33,19 +41,24 @@ from f2f_jax.nets.shape import (
 __all__ = [
     "N_OUTPUTS",
     "RESOLUTION",
+    "GENERATORS",
     "FingerGenerator",
     "FitnessNet",
     "Generator",
+    "HeightGenerator",
     "ResidualBlock",
     "ShapeAutoEncoder",
     "ShapeDecoder",
     "ShapeEncoder",
     "count_params",
     "fitness_input",
+    "generator_module",
+    "heights_to_tsdf",
     "left_to_world",
     "reparameterize",
     "right_to_world",
     "summarize",
+    "tsdf_heights",
 ]
 
 
@@ -75,6 +88,7 @@ def summarize(cfg: NetConfig, batch: int = 2) -> list[dict[str, Any]]:
         ("Generator", Generator(cfg), (latent,)),
         ("ShapeAutoEncoder", ShapeAutoEncoder(cfg), (volume,)),
         ("FingerGenerator", FingerGenerator(cfg), (volume,)),
+        ("HeightGenerator", HeightGenerator(cfg), (volume,)),
         ("FitnessNet", FitnessNet(cfg), (grasp,)),
     ]
     rows = []

@@ -26,9 +26,11 @@ def main(argv: list[str] | None = None) -> int:
     for row in rows:
         outputs = "" if row["outputs"] is None else str(row["outputs"])
         print(f"{row['name']:<28}{row['params']:>14,}  {outputs}")
-        if "/" not in row["name"] and row["name"] not in ("ShapeAutoEncoder", "FingerGenerator"):
+        if "/" not in row["name"] and row["name"] not in ("ShapeAutoEncoder", "FingerGenerator",
+                                                                "HeightGenerator"):
             total += row["params"]
-    # the distinct networks: encoder + decoder + embedding + fitness (AE and FG share them)
+    # the distinct networks: encoder + decoder + embedding + fitness (AE and FG share them); the
+    # height-map generator replaces G with net.generator = "heights"
     print(f"{'total (E + D + G + F)':<28}{total:>14,}")
     return 0
 

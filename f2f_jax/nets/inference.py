@@ -2,7 +2,9 @@
 
 ``TrainedNets`` holds a run's generator and fitness net with the config that sized them; ``propose``
 decodes a batch of objects into K candidate finger pairs each (candidate 0 the generator's own
-output, the rest with latent noise), ``predict`` scores candidates with the fitness net.  Both are
+output, the rest with noise on its finger codes: Gaussian latent noise, or for the height-map
+generator a smooth random field added to each height map), ``predict`` scores candidates with
+the fitness net.  Both are
 one jitted call over the whole batch, chunked inside by ``lax.map`` (``CHUNK`` rows at a time) so
 memory stays bounded for large batches.
 
@@ -21,12 +23,18 @@ import numpy as np
 
 from f2f_jax.config import Config, NetConfig
 from f2f_jax.nets.fitness import FitnessNet, fitness_input
-from f2f_jax.nets.generator import FingerGenerator
+from f2f_jax.nets.generator import generator_module
 from f2f_jax.nets.shape import RESOLUTION
 
 # Standard deviation of the Gaussian added to each finger-latent coordinate of candidates
 # 1..K-1: 0.1 of the latent range [-1, 1] (the generator's tanh output, the encoder's means).
 LATENT_NOISE = 0.2
+# The height-map generator's candidates: a smooth random field added to each height map, Gaussian
+# on a HEIGHT_NOISE_GRID^2 grid over the mount and bilinearly interpolated between, its standard
+# deviation at the grid points noise x HEIGHT_NOISE_VOXELS voxels (2 voxels at LATENT_NOISE: about
+# how far the shape auto-encoder moves an imprint's faces).
+HEIGHT_NOISE_VOXELS = 10.0
+HEIGHT_NOISE_GRID = 5
 # Candidates (or objects) per vectorised chunk inside one jitted call: bounds activation memory
 # (default config: ~1 GB per 256 fitness triples on a CPU) without a Python loop.
 CHUNK = 256
@@ -37,8 +45,9 @@ class TrainedNets:
     """What a run trained, ready for ``f2f_jax.design`` and evaluation.
 
     config: the Config that sized the nets.
-    generator: ``FingerGenerator`` variables ``{"params": {encoder, embedding, decoder},
-        "batch_stats": {...}}``.
+    generator: the generator's variables (``nets.generator_module(config.net)``):
+        ``{"params": {encoder, embedding, decoder}, "batch_stats": {...}}`` for the paper's
+        ``FingerGenerator``, ``{"params": {embedding}}`` for the ``HeightGenerator``.
     fitness: ``FitnessNet`` variables ``{"params", "batch_stats"}``.
     objectives: the fitness outputs the generator was trained to maximise ("full", "GS", ...).
     source: where they came from (a checkpoint path, or "random init").
@@ -63,7 +72,7 @@ class TrainedNets:
 @functools.partial(jax.jit, static_argnums=0)
 def generate(net_cfg: NetConfig, variables, objects):
     """Finger generator in evaluation mode: objects [B, R, R, R] -> lefts, rights (one jitted call)."""
-    return FingerGenerator(net_cfg).apply(variables, objects, train=False)
+    return generator_module(net_cfg).apply(variables, objects, train=False)
 
 
 def _probabilities(net_cfg: NetConfig, variables, objects, lefts, rights) -> jax.Array:
@@ -117,28 +126,46 @@ def _chunked_map(f, xs, chunk: int):
     return jax.lax.map(f, xs, batch_size=chunk)
 
 
-def _decode(module: FingerGenerator, latent: jax.Array) -> jax.Array:
-    return module.decoder(latent, train=False)
+def code_noise(net_cfg: NetConfig, key, shape: tuple[int, ...], noise) -> jax.Array:
+    """Noise for finger codes [*shape, D] of the configured generator: Gaussian of std ``noise`` per
+    latent coordinate, or for height codes (D = R * R) a smooth field over each map (see
+    ``HEIGHT_NOISE_VOXELS``)."""
+    r = RESOLUTION
+    if net_cfg.generator != "heights":
+        return noise * jax.random.normal(key, (*shape, net_cfg.latent_dim), jnp.float32)
+    g = HEIGHT_NOISE_GRID
+    coarse = jax.random.normal(key, (*shape, g, g), jnp.float32)
+    # bilinear between the grid points, grid points at the mount's corners and evenly between
+    t = jnp.linspace(0.0, g - 1.0, r)
+    i0 = jnp.clip(jnp.floor(t).astype(jnp.int32), 0, g - 2)
+    f = t - i0
+    rows = coarse[..., i0, :] * (1 - f)[:, None] + coarse[..., i0 + 1, :] * f[:, None]
+    field = rows[..., i0] * (1 - f) + rows[..., i0 + 1] * f
+    return (noise * HEIGHT_NOISE_VOXELS) * field.reshape(*shape, r * r)
 
 
 @functools.partial(jax.jit, static_argnames=("net_cfg", "candidates", "chunk"))
 def _propose_jit(net_cfg: NetConfig, variables, objects, key, noise, *, candidates: int, chunk: int):
-    """objects [B, R, R, R] -> lefts, rights [B, K, R, R, R]; latent noise on candidates 1..K-1."""
-    gen = FingerGenerator(net_cfg)
+    """objects [B, R, R, R] -> lefts, rights [B, K, R, R, R]; code noise on candidates 1..K-1."""
+    gen = generator_module(net_cfg)
+    cls = type(gen)
     r = RESOLUTION
 
-    def latents(obj):  # [R, R, R] -> [2, D]
-        left, right = gen.apply(variables, obj[None], train=False, method=FingerGenerator.latents)
+    def codes(obj):  # [R, R, R] -> [2, D]
+        left, right = gen.apply(variables, obj[None], train=False, method=cls.latents)
         return jnp.concatenate([left, right], axis=0)
 
-    z = _chunked_map(latents, objects, chunk)  # [B, 2, D]
+    z = _chunked_map(codes, objects, chunk)  # [B, 2, D]
     b, _, d = z.shape
-    eps = noise * jax.random.normal(key, (b, candidates, 2, d), jnp.float32)
+    eps = code_noise(net_cfg, key, (b, candidates, 2), noise)
     eps = eps.at[:, 0].set(0.0)
-    z = jnp.clip(z[:, None] + eps, -1.0, 1.0)  # the decoder saw latents in [-1, 1] only
+    lo, hi = cls.code_range(net_cfg)
+    # noisy codes back into the generator's box (the decoder saw latents in [-1, 1] only);
+    # candidate 0 exactly as generated
+    z = jnp.clip(z[:, None] + eps, lo, hi).at[:, 0].set(z)
 
-    def decode(latent):  # [D] -> [R, R, R]
-        return gen.apply(variables, latent[None], method=_decode)[0]
+    def decode(code):  # [D] -> [R, R, R]
+        return gen.apply(variables, code[None], method=cls.decode_one)[0]
 
     fingers = _chunked_map(decode, z.reshape(-1, d), chunk)
     fingers = fingers.reshape(b, candidates, 2, r, r, r)

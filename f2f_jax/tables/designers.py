@@ -26,7 +26,7 @@ from f2f_jax.config import Config
 from f2f_jax.data.sources import wsg_fmf_fingers
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import imprint_fingers, is_feasible, largest_component, wsg50_fingers
-from f2f_jax.nets import FingerGenerator, FitnessNet, fitness_input
+from f2f_jax.nets import RESOLUTION, FitnessNet, fitness_input, generator_module
 from f2f_jax.train.steps import generate_batched
 
 log = logging.getLogger(__name__)
@@ -99,13 +99,15 @@ def nets_designer(nets, *, batch: int = 8) -> Designer:
 @functools.lru_cache(maxsize=8)
 def _randemb_optimizer(net, steps: int, lr: float, objective: str):
     """Jitted ``(gvars, fvars, obj [R,R,R], z0 [S,2,D]) -> (z [S,2,D], score [S])``: Adam on the
-    finger latents (projected onto the latent box [-1, 1]^D) to maximise the fitness net's
-    prediction for the decoded fingers.  net: the NetConfig (cached per config: one compile)."""
-    gen, fit = FingerGenerator(net), FitnessNet(net)
-    opt = optax.adam(lr)
+    finger codes (projected onto the generator's code box: latents in [-1, 1]^D, heights in
+    [0, R]^D) to maximise the fitness net's prediction for the decoded fingers; ``lr`` is in units
+    of half the box's width.  net: the NetConfig (cached per config: one compile)."""
+    gen, fit = generator_module(net), FitnessNet(net)
+    lo, hi = type(gen).code_range(net)
+    opt = optax.adam(lr * (hi - lo) / 2)
 
     def decode(gvars, z):  # [M, D] -> [M, R, R, R]
-        return gen.apply(gvars, z, method=lambda m, z: m.decoder(z, train=False))
+        return gen.apply(gvars, z, method=type(gen).decode_one)
 
     def score(gvars, fvars, obj, z):  # [S]
         s, _, d = z.shape
@@ -120,7 +122,7 @@ def _randemb_optimizer(net, steps: int, lr: float, objective: str):
             z, opt_state = carry
             grads = jax.grad(lambda z: -score(gvars, fvars, obj, z).sum())(z)
             updates, opt_state = opt.update(grads, opt_state, z)
-            z = jnp.clip(optax.apply_updates(z, updates), -1.0, 1.0)
+            z = jnp.clip(optax.apply_updates(z, updates), lo, hi)
             return (z, opt_state), None
 
         (z, _), _ = jax.lax.scan(step, (z0, opt.init(z0)), None, length=steps)
@@ -135,7 +137,9 @@ def random_embedding_designer(nets, key, *, samples: int = 8, steps: int = 200, 
     the shape decoder and the fitness net, without the generator's embedding network.
 
     Per object: ``samples`` random (left, right) latent pairs uniform in the latent box
-    [-1, 1]^D, each optimised by Adam (``lr``) for ``steps`` steps (paper: 200) to maximise the
+    [-1, 1]^D (for the height-map generator: height maps uniform in [0, R] voxels per column, the
+    fingers read from them as the generator's are), each optimised by Adam (``lr``, in half-widths of
+    that box) for ``steps`` steps (paper: 200) to maximise the
     fitness net's predicted grasp success (``objective="grasp"``) or the mean of its 11 outputs
     ("mean"); then decoded, reduced to their largest connected components, and the feasible pair
     the fitness net scores best is kept (the best infeasible one if none is feasible: it scores 0).
@@ -145,16 +149,17 @@ def random_embedding_designer(nets, key, *, samples: int = 8, steps: int = 200, 
         raise ValueError(f"objective: 'grasp' or 'mean', got {objective!r}")
     if samples < 1 or steps < 0:
         raise ValueError(f"samples must be >= 1 and steps >= 0, got {samples} and {steps}")
-    run = _randemb_optimizer(nets.config.net, int(steps), float(lr), objective)
-    d = nets.config.net.latent_dim
+    net = nets.config.net
+    run = _randemb_optimizer(net, int(steps), float(lr), objective)
+    lo, hi = type(generator_module(net)).code_range(net)
+    d = RESOLUTION ** 2 if net.generator == "heights" else net.latent_dim
     out_index = 0 if objective == "grasp" else slice(None)
 
     def design(objects):
         objs = objects_array(objects)
         lefts, rights = [], []
         for i, obj in enumerate(objs):
-            z0 = jax.random.uniform(jax.random.fold_in(key, i), (samples, 2, d), minval=-1.0,
-                                    maxval=1.0)
+            z0 = jax.random.uniform(jax.random.fold_in(key, i), (samples, 2, d), minval=lo, maxval=hi)
             _, fingers = run(nets.generator, nets.fitness, obj, z0)
             # decoded from z.reshape(2S, D): row 2s is sample s's left finger, row 2s + 1 its right
             fingers = _postprocess(np.asarray(fingers)).reshape(samples, 2, *obj.shape)

@@ -43,6 +43,7 @@ from f2f_jax.config import TRIAL_NAMES, Config
 from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import is_feasible, postprocess
+from f2f_jax.nets import GENERATORS
 from f2f_jax.nets.inference import TrainedNets, propose
 from f2f_jax.train import steps as S
 from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
@@ -96,6 +97,14 @@ class CoTrainRun:
             raise F2FError(f"train.anchor_target must be one of {ANCHOR_TARGETS}, got {t.anchor_target!r}")
         if t.cycle_candidates < 1:
             raise F2FError(f"train.cycle_candidates must be >= 1, got {t.cycle_candidates}")
+        if t.gn_passes < 1:
+            raise F2FError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
+        if cfg.net.generator not in GENERATORS:
+            raise F2FError(f"net.generator must be one of {tuple(GENERATORS)}, got {cfg.net.generator!r}")
+        if cfg.net.generator == "heights" and cfg.net.height_truncation_voxels != cfg.geometry.truncation_voxels:
+            raise F2FError(f"net.height_truncation_voxels ({cfg.net.height_truncation_voxels}) must equal "
+                           f"geometry.truncation_voxels ({cfg.geometry.truncation_voxels}): the height "
+                           "generator's fingers must be TSDFs like the imprints the fitness net learns from")
         self._check_run_json()
 
     # -- bookkeeping --------------------------------------------------------------------------
@@ -265,9 +274,10 @@ class CoTrainRun:
             if self._done("gn", epoch):
                 continue
             rng = self._rng("gn", epoch)
+            index = [b for _ in range(t.gn_passes)
+                     for b in self._batches(len(data["object"]), t.fn_batch_size, rng)]
             batches = LazyBatches(lambda i, b: S.shard(*(data[k][b].astype(np.float32)
-                                                   for k in ("object", "left", "right"))),
-                            self._batches(len(data["object"]), t.fn_batch_size, rng))
+                                                   for k in ("object", "left", "right"))), index)
             rec = self._epoch("gn", step, batches, epoch, desc=f"GN epoch {epoch}/{t.gn_epochs}")
             self._log(rec)
             self._save("gn", epoch, 0)

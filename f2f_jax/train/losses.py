@@ -10,8 +10,9 @@ What the original code did (``train.py`` of real-stanford/fit2form), and what we
 * Generator: ``-mean(F(o, G(o)))`` over the optimised outcomes; the ablations GS, GS+R, GS+S select
   grasp, grasp + robustness, grasp + stability (``OBJECTIVE_MASKS``).
 * Generator pretraining: the original took the MSE between decoded and imprint finger TSDFs; we
-  regress the embedding's finger latents onto the frozen encoder's latents of the imprint fingers
-  (``imprint_latent_loss``), which skips the decoder and its backward pass.
+  regress the embedding's finger latents onto the frozen encoder's latents of the imprint fingers,
+  which skips the decoder and its backward pass (or, for the height-map generator, the height
+  maps' L1): each generator's ``imprint_distance`` in ``f2f_jax.nets.generator``.
 """
 
 from __future__ import annotations
@@ -127,15 +128,3 @@ def generator_loss(fitness_logits: jax.Array, objectives: str = "full") -> jax.A
     # a static column selection: the mask is a numpy constant, so this traces to a gather
     selected = jax.nn.sigmoid(fitness_logits.astype(jnp.float32))[..., np.flatnonzero(mask)]
     return -jnp.mean(selected)
-
-
-def imprint_latent_loss(pred: jax.Array, target: jax.Array) -> jax.Array:
-    """MSE between predicted finger latents and the imprint fingers' latents.
-
-    pred, target: [B, latent_dim] (or any matching shapes, e.g. [B, 2 x latent_dim] for both
-    fingers) float32. Returns a scalar.
-    """
-    if pred.shape != target.shape:
-        raise ValueError(f"imprint_latent_loss: prediction {tuple(pred.shape)} and target "
-                         f"{tuple(target.shape)} differ in shape")
-    return jnp.mean(jnp.square(pred.astype(jnp.float32) - target.astype(jnp.float32)))

@@ -15,7 +15,7 @@ import optax
 from flax import struct
 
 from f2f_jax.config import Config, TrainConfig
-from f2f_jax.nets import RESOLUTION, FingerGenerator, FitnessNet, ShapeAutoEncoder
+from f2f_jax.nets import RESOLUTION, FitnessNet, ShapeAutoEncoder, generator_module
 from f2f_jax.nets.inference import TrainedNets
 
 
@@ -43,7 +43,8 @@ def optimizer(tcfg: TrainConfig) -> optax.GradientTransformation:
 
 
 def generator_optimizer(cfg: Config) -> optax.GradientTransformation:
-    """Adam on the embedding net only: the pretrained encoder and decoder stay frozen (paper)."""
+    """Adam on the embedding net only: the pretrained encoder and decoder stay frozen (paper); the
+    height-map generator has nothing else."""
     opt = optimizer(cfg.train)
 
     def labels(params):
@@ -85,7 +86,7 @@ def init_fitness(cfg: Config, seed: int = 0) -> dict:
 def init_generator(cfg: Config, seed: int = 0) -> dict:
     r = RESOLUTION
     x = jnp.zeros((2, r, r, r), jnp.float32)
-    return _init(FingerGenerator(cfg.net), seed, x)
+    return _init(generator_module(cfg.net), seed, x)
 
 
 def init_trained_nets(cfg: Config, seed: int = 0, objectives: str = "full") -> TrainedNets:
@@ -108,7 +109,10 @@ def fresh_run_state(cfg: Config, seed: int) -> dict:
 
 def with_codec_of(gn: TrainState, ae: TrainState) -> TrainState:
     """The generator's state with the shape VAE's encoder and decoder (parameters and BatchNorm
-    statistics) in place of its own: the generator's frozen codec is the pretrained VAE's."""
+    statistics) in place of its own: the generator's frozen codec is the pretrained VAE's.  A
+    generator without a codec (the height-map generator) is returned as it is."""
+    if "encoder" not in gn.params:
+        return gn
     params, stats = dict(gn.params), dict(gn.batch_stats)
     for part in ("encoder", "decoder"):
         # copies: the generator's state is donated to its steps, the VAE's must survive

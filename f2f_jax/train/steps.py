@@ -20,15 +20,9 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from f2f_jax.config import Config
 from f2f_jax.geometry import solid_iou
-from f2f_jax.nets import FingerGenerator, FitnessNet, ShapeAutoEncoder, fitness_input
+from f2f_jax.nets import FitnessNet, ShapeAutoEncoder, fitness_input, generator_module
 from f2f_jax.nets.inference import generate
-from f2f_jax.train.losses import (
-    fitness_loss,
-    generator_loss,
-    imprint_latent_loss,
-    reconstruction_mse,
-    vae_loss,
-)
+from f2f_jax.train.losses import fitness_loss, generator_loss, reconstruction_mse, vae_loss
 from f2f_jax.train.state import TrainState, generator_optimizer, optimizer
 
 Step = Callable[..., tuple[TrainState, dict[str, jax.Array]]]
@@ -149,29 +143,27 @@ def fn_eval(cfg: Config) -> Callable:
     return f
 
 
-# -- stage 3: generator, pretrained on imprint latents ------------------------------------------
-def _imprint_distance(model: FingerGenerator, variables, zl, zr, left, right) -> jax.Array:
-    """Latent MSE between the embedding's finger latents (zl, zr) and the frozen encoder's means of
-    the imprint fingers (left, right): the generator's pretraining loss and its co-training anchor."""
-    def encode(m, x):
-        return jax.lax.stop_gradient(m.encoder(x, train=False)[0])
-
-    tl = model.apply(variables, left, method=encode)
-    tr = model.apply(variables, right, method=encode)
-    return imprint_latent_loss(jnp.concatenate([zl, zr], 1), jnp.concatenate([tl, tr], 1))
+# -- stage 3: generator, pretrained on imprint fingers --------------------------------------------
+def _latents(model, variables, obj):
+    """The generator's finger codes in training mode, and its updated BatchNorm statistics (none
+    for a generator without BatchNorm)."""
+    (zl, zr), upd = model.apply(variables, obj, train=True, method=type(model).latents,
+                                mutable=["batch_stats"])
+    return zl, zr, upd.get("batch_stats", {})
 
 
 @functools.lru_cache(maxsize=None)
 def gn_imprint_step(cfg: Config) -> Step:
-    """``step(state, objects, imprint_lefts, imprint_rights) -> (state, {"loss"})``: MSE between
-    the embedding's finger latents and the frozen encoder's latents of the imprint fingers."""
-    model = FingerGenerator(cfg.net)
+    """``step(state, objects, imprint_lefts, imprint_rights) -> (state, {"loss"})``: the generator's
+    distance to the imprint fingers (``imprint_distance``: the latent MSE to the frozen encoder's
+    latents of the imprints, or the height maps' L1 for ``net.generator = "heights"``)."""
+    model = generator_module(cfg.net)
 
     def loss_fn(params, batch_stats, obj, left, right):
         variables = {"params": params, "batch_stats": batch_stats}
-        (zl, zr), upd = model.apply(variables, obj, train=True, method=FingerGenerator.latents,
-                                    mutable=["batch_stats"])
-        return _imprint_distance(model, variables, zl, zr, left, right), upd["batch_stats"]
+        zl, zr, stats = _latents(model, variables, obj)
+        dist = model.apply(variables, zl, zr, left, right, method=type(model).imprint_distance)
+        return dist, stats
 
     opt = generator_optimizer(cfg)
 
@@ -194,29 +186,28 @@ def gn_fitness_step(cfg: Config, objectives: str | None = None) -> Step:
 
     With ``cfg.train.imprint_anchor`` > 0 the step takes the objects' imprint fingers too,
     ``step(state, fitness_variables, objects, imprint_lefts, imprint_rights)``, and adds that weight
-    times the squared distance of the finger latents to the imprint fingers' latents (the
-    pretraining target): a trust region that keeps the designs where the decoder and the fitness
+    times the generator's distance to those fingers (its pretraining loss, ``imprint_distance``):
+    a trust region that keeps the designs where the decoder and the fitness
     net have seen data.  Metrics then also hold "fitness_loss" and "anchor".
     """
-    model = FingerGenerator(cfg.net)
+    model = generator_module(cfg.net)
     fitness = FitnessNet(cfg.net)
     objectives = objectives or cfg.train.objectives
     anchor = float(cfg.train.imprint_anchor)
 
     def loss_fn(params, batch_stats, fit_vars, obj, *imprints):
         variables = {"params": params, "batch_stats": batch_stats}
-        (zl, zr), upd = model.apply(variables, obj, train=True, method=FingerGenerator.latents,
-                                    mutable=["batch_stats"])
-        left, right = model.apply(variables, zl, zr, method=FingerGenerator.decode)
+        zl, zr, stats = _latents(model, variables, obj)
+        left, right = model.apply(variables, zl, zr, method=type(model).decode)
         logits = fitness.apply(fit_vars, fitness_input(obj, left, right), train=False)
         fit_loss = generator_loss(logits, objectives)
         aux = {"fitness": jnp.mean(jax.nn.sigmoid(logits), 0)}
         loss = fit_loss
         if anchor:
-            dist = _imprint_distance(model, variables, zl, zr, *imprints)
+            dist = model.apply(variables, zl, zr, *imprints, method=type(model).imprint_distance)
             loss = fit_loss + anchor * dist
             aux.update(fitness_loss=fit_loss, anchor=dist)
-        return loss, (upd["batch_stats"], aux)
+        return loss, (stats, aux)
 
     opt = generator_optimizer(cfg)
 
