@@ -4,9 +4,8 @@
 decodes a batch of objects into K candidate finger pairs each (candidate 0 the generator's own
 output, the rest with noise on its finger codes: Gaussian latent noise, or for the height-map
 generator a smooth random field added to each height map), ``predict`` scores candidates with
-the fitness net.  Both are
-one jitted call over the whole batch, chunked inside by ``lax.map`` (``CHUNK`` rows at a time) so
-memory stays bounded for large batches.
+the fitness net.  Both are one jitted call over the whole batch, chunked inside by ``lax.map``
+(``CHUNK`` rows at a time) so memory stays bounded for large batches.
 
 This module sits above the network definitions and below training and design: ``train`` fills
 ``TrainedNets`` from checkpoints, ``designer`` and ``tables`` run them.
