@@ -23,7 +23,8 @@ loses ~1.9 trials of 11 (its faces move ~2 voxels); this generator, pretrained o
 came within 0.7 trials of them (``benchmarks/finger_fidelity.py``, RESULTS.md session 18).
 
 Both generators answer the same calls: ``latents`` (finger codes), ``decode`` (codes -> TSDFs),
-``imprint_distance`` (the pretraining loss and co-training anchor), and keep their trainable
+``imprint_distance`` (the pretraining loss and co-training anchor), ``code_range`` and
+``code_dim`` (the box and size of a finger code), and keep their trainable
 network in ``params["embedding"]``; ``generator_module(net_cfg)`` picks one.
 """
 
@@ -133,6 +134,11 @@ class FingerGenerator(Net):
         """The box the finger codes live in: the embedding's tanh, the decoder's training range."""
         return -1.0, 1.0
 
+    @staticmethod
+    def code_dim(net_cfg: NetConfig) -> int:
+        """Numbers per finger code: the latent size."""
+        return net_cfg.latent_dim
+
 
 # Leaky ReLU slope of the height generator's convolutions (as measured in finger_fidelity).
 HEIGHT_LEAKY_SLOPE = 0.2
@@ -225,6 +231,11 @@ class HeightGenerator(Net):
     def code_range(net_cfg: NetConfig) -> tuple[float, float]:
         """Heights run from the mount (0) to the cube's far face (R voxels)."""
         return 0.0, float(RESOLUTION)
+
+    @staticmethod
+    def code_dim(net_cfg: NetConfig) -> int:
+        """Numbers per finger code: one height per column of the mount, R * R."""
+        return RESOLUTION * RESOLUTION
 
 
 GENERATORS = {"latent": FingerGenerator, "heights": HeightGenerator}

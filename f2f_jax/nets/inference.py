@@ -131,7 +131,8 @@ def code_noise(net_cfg: NetConfig, key, shape: tuple[int, ...], noise) -> jax.Ar
     ``HEIGHT_NOISE_VOXELS``)."""
     r = RESOLUTION
     if net_cfg.generator != "heights":
-        return noise * jax.random.normal(key, (*shape, net_cfg.latent_dim), jnp.float32)
+        d = generator_module(net_cfg).code_dim(net_cfg)
+        return noise * jax.random.normal(key, (*shape, d), jnp.float32)
     g = HEIGHT_NOISE_GRID
     coarse = jax.random.normal(key, (*shape, g, g), jnp.float32)
     # bilinear between the grid points, grid points at the mount's corners and evenly between

@@ -26,7 +26,7 @@ from f2f_jax.config import Config
 from f2f_jax.data.sources import wsg_fmf_fingers
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import imprint_fingers, is_feasible, largest_component, wsg50_fingers
-from f2f_jax.nets import RESOLUTION, FitnessNet, fitness_input, generator_module
+from f2f_jax.nets import FitnessNet, fitness_input, generator_module
 from f2f_jax.train.steps import generate_batched
 
 log = logging.getLogger(__name__)
@@ -151,8 +151,9 @@ def random_embedding_designer(nets, key, *, samples: int = 8, steps: int = 200, 
         raise ValueError(f"samples must be >= 1 and steps >= 0, got {samples} and {steps}")
     net = nets.config.net
     run = _randemb_optimizer(net, int(steps), float(lr), objective)
-    lo, hi = type(generator_module(net)).code_range(net)
-    d = RESOLUTION ** 2 if net.generator == "heights" else net.latent_dim
+    cls = type(generator_module(net))
+    lo, hi = cls.code_range(net)
+    d = cls.code_dim(net)
     out_index = 0 if objective == "grasp" else slice(None)
 
     def design(objects):
