@@ -5,6 +5,10 @@ class F2FError(Exception):
     """Base class of every error f2f_jax raises on purpose."""
 
 
+class ConfigError(F2FError, ValueError):
+    """A configuration field outside what it may hold (a generator, an anchor target, a count)."""
+
+
 class MeshError(F2FError, ValueError):
     """A mesh that cannot become a shape volume (empty, NaN, flat, absurd size, unreadable)."""
 

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from f2f_jax import config
-from f2f_jax.errors import F2FError
+from f2f_jax.errors import ConfigError, F2FError
 from f2f_jax.geometry import imprint_fingers
 from f2f_jax.geometry.finger_tiling import finger_height_map
 from f2f_jax.nets import HeightGenerator, generator_module, heights_to_tsdf, tsdf_heights
@@ -160,7 +160,7 @@ def test_random_embeddings_of_heights_and_settings_are_checked(cfg):
     assert left.shape == right.shape == (2, R, R, R)
     assert all(feasibility_report(f, cfg.geometry)["components"] <= 1 for f in (*left, *right))
     assert isinstance(generator_module(cfg.net), HeightGenerator)
-    with pytest.raises(ValueError, match="net.generator must be one of"):
+    with pytest.raises(ConfigError, match="net.generator must be one of"):
         generator_module(dataclasses.replace(cfg.net, generator="voxels"))
     bad = cfg.replace(net=dataclasses.replace(cfg.net, generator="voxels"))
     with pytest.raises(F2FError, match="net.generator must be one of"):

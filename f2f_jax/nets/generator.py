@@ -35,6 +35,7 @@ import jax.numpy as jnp
 from flax import linen as nn
 
 from f2f_jax.config import NetConfig
+from f2f_jax.errors import ConfigError
 from f2f_jax.nets.shape import RESOLUTION, Net, ShapeDecoder, ShapeEncoder, check_volume_batch, dense_layers
 
 
@@ -246,6 +247,6 @@ def generator_module(net_cfg: NetConfig, dtype=jnp.float32) -> Net:
     try:
         cls = GENERATORS[net_cfg.generator]
     except KeyError:
-        raise ValueError(f"net.generator must be one of {tuple(GENERATORS)}, got "
+        raise ConfigError(f"net.generator must be one of {tuple(GENERATORS)}, got "
                          f"{net_cfg.generator!r}") from None
     return cls(net_cfg, dtype=dtype)

@@ -43,7 +43,7 @@ from f2f_jax.config import TRIAL_NAMES, Config
 from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import is_feasible, postprocess
-from f2f_jax.nets import GENERATORS
+from f2f_jax.nets import generator_module
 from f2f_jax.nets.inference import TrainedNets, propose
 from f2f_jax.train import steps as S
 from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
@@ -99,8 +99,7 @@ class CoTrainRun:
             raise F2FError(f"train.cycle_candidates must be >= 1, got {t.cycle_candidates}")
         if t.gn_passes < 1:
             raise F2FError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
-        if cfg.net.generator not in GENERATORS:
-            raise F2FError(f"net.generator must be one of {tuple(GENERATORS)}, got {cfg.net.generator!r}")
+        generator_module(cfg.net)  # ConfigError (an F2FError) on an unknown net.generator
         if cfg.net.generator == "heights" and cfg.net.height_truncation_voxels != cfg.geometry.truncation_voxels:
             raise F2FError(f"net.height_truncation_voxels ({cfg.net.height_truncation_voxels}) must equal "
                            f"geometry.truncation_voxels ({cfg.geometry.truncation_voxels}): the height "
