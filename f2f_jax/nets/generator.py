@@ -248,5 +248,5 @@ def generator_module(net_cfg: NetConfig, dtype=jnp.float32) -> Net:
         cls = GENERATORS[net_cfg.generator]
     except KeyError:
         raise ConfigError(f"net.generator must be one of {tuple(GENERATORS)}, got "
-                         f"{net_cfg.generator!r}") from None
+                          f"{net_cfg.generator!r}") from None
     return cls(net_cfg, dtype=dtype)

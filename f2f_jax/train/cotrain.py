@@ -40,7 +40,7 @@ import numpy as np
 
 from f2f_jax import sim
 from f2f_jax.config import TRIAL_NAMES, Config
-from f2f_jax.errors import F2FError
+from f2f_jax.errors import ConfigError, F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import is_feasible, postprocess
 from f2f_jax.nets import generator_module
@@ -94,16 +94,17 @@ class CoTrainRun:
         self.seed = cfg.train.seed
         t = cfg.train
         if t.anchor_target not in ANCHOR_TARGETS:
-            raise F2FError(f"train.anchor_target must be one of {ANCHOR_TARGETS}, got {t.anchor_target!r}")
+            raise ConfigError(f"train.anchor_target must be one of {ANCHOR_TARGETS}, got {t.anchor_target!r}")
         if t.cycle_candidates < 1:
-            raise F2FError(f"train.cycle_candidates must be >= 1, got {t.cycle_candidates}")
+            raise ConfigError(f"train.cycle_candidates must be >= 1, got {t.cycle_candidates}")
         if t.gn_passes < 1:
-            raise F2FError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
-        generator_module(cfg.net)  # ConfigError (an F2FError) on an unknown net.generator
+            raise ConfigError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
+        generator_module(cfg.net)  # ConfigError on an unknown net.generator
         if cfg.net.generator == "heights" and cfg.net.height_truncation_voxels != cfg.geometry.truncation_voxels:
-            raise F2FError(f"net.height_truncation_voxels ({cfg.net.height_truncation_voxels}) must equal "
-                           f"geometry.truncation_voxels ({cfg.geometry.truncation_voxels}): the height "
-                           "generator's fingers must be TSDFs like the imprints the fitness net learns from")
+            raise ConfigError(
+                f"net.height_truncation_voxels ({cfg.net.height_truncation_voxels}) must equal "
+                f"geometry.truncation_voxels ({cfg.geometry.truncation_voxels}): the height "
+                "generator's fingers must be TSDFs like the imprints the fitness net learns from")
         self._check_run_json()
 
     # -- bookkeeping --------------------------------------------------------------------------
