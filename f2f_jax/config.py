@@ -282,7 +282,8 @@ def default() -> Config:
         # under its target BCE after one epoch from cycle 4 on, and the generator never reaches
         # its target here, so it runs the cap (2 passes over the 51 training objects).  A cycle
         # costs ~27 s with the decoder above (~45 s with the first one, ~75 s with 2..6 epochs);
-        # the whole run 16 min on 2 cores with seed 0's shipped pieces, 22-30 min at seeds whose
+        # the whole run 16 min on 2 cores with seed 0's shipped pieces and the latent generator,
+        # 19 min 43 s with the height generator (cycles 31-35 s; session 20), longer at seeds whose
         # 64 objects go through coacd first (benchmarks/RESULTS.md).  The height generator's
         # pretraining: 12 passes of 2 steps an epoch, 480 steps (~2 min), where one pass (40
         # steps) leaves it far from the imprints; the latent generator's schedule was one pass
