@@ -130,6 +130,17 @@ def test_fitness_net_learns_and_run_reports(uninterrupted):
     cyc = {r["cycle"]: r for r in log if r.get("stage") == "cycle"}
     assert cyc[1]["fn_epochs"] == cyc[1]["gn_epochs"] == 0 and cyc[1]["designs_so_far"] == 16
     assert cyc[2]["fn_epochs"] > 0 and cyc[2]["gn_epochs"] > 0 and cyc[3]["designs_so_far"] == 48
+    # the generator's pretraining saw the imprints of the extra objects too: 13 training objects
+    # and 4 more are 3 batches of 8 a pass (2 without them), and no extra object was simulated
+    t = config.tiny().train
+    data = next(r for r in log if r.get("stage") == "data")
+    assert data["imprint_objects"] == t.imprint_objects == 4 and data["train"] == 13
+    assert {r["steps"] for r in log if r.get("stage") == "gn" and r.get("cycle") == 0} == {3 * t.gn_passes}
+    from f2f_jax.dataset.store import GraspStore
+
+    stored = {str(n) for n in GraspStore(run_dir / "store").read(("name",))["name"]}
+    extra = {str(n) for n in np.load(next((run_dir / "imprint_objects").glob("part-*.npz")))["names"]}
+    assert len(extra) == 4 and not extra & stored
     for r in log:
         if "loss" in r:
             assert np.isfinite(r["loss"])

@@ -287,6 +287,32 @@ def test_object_set_keeps_its_test_fraction(tmp_path):
         load_or_make_objects("builtin", 5, 0, tmp_path, progress=False, test_fraction=0.2)
 
 
+def test_builtin_range_is_made_in_chunks_kept_on_disk(tmp_path, monkeypatch):
+    """The extra imprint objects of a run (TrainConfig.imprint_objects): built-in objects past the
+    run's own, the same volumes as made one by one, each chunk kept so that a killed call resumes
+    from the chunks it finished, and a directory of another range refused."""
+    from f2f_jax.data import load_or_make_builtin_range
+    from f2f_jax.data import object_set
+
+    tsdfs, names = load_or_make_builtin_range(tmp_path, 5, 3, 0, progress=False, chunk=2, threads=2)
+    want = [builtin_object(i, 0) for i in (5, 6, 7)]
+    assert names == [m.metadata["name"] for m in want]
+    assert not set(names) & {m.metadata["name"] for m in builtin_objects(5, seed=0)}  # the run's own
+    for got, mesh in zip(tsdfs, want):
+        np.testing.assert_array_equal(got, mesh_to_tsdf(mesh).astype(np.float16).astype(np.float32))
+    assert sorted(p.name for p in tmp_path.glob("part-*.npz")) == ["part-000005.npz", "part-000007.npz"]
+
+    made = []
+    monkeypatch.setattr(object_set, "mesh_to_tsdf", lambda mesh, cfg, name: made.append(name) or
+                        mesh_to_tsdf(mesh, cfg, name=name))
+    (tmp_path / "part-000007.npz").unlink()  # as if killed in the second chunk
+    again, names_again = load_or_make_builtin_range(tmp_path, 5, 3, 0, progress=False, chunk=2)
+    assert made == [names[2]] and names_again == names  # only the lost chunk was made again
+    np.testing.assert_array_equal(again, tsdfs)
+    with pytest.raises(ValueError, match="another directory"):
+        load_or_make_builtin_range(tmp_path, 6, 3, 0, progress=False, chunk=2)
+
+
 # --- the CLI --------------------------------------------------------------------------------------
 def test_make_objects_cli(tmp_path, capsys):
     from f2f_jax.cli import make_objects

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from f2f_jax.config import GeometryConfig
+from f2f_jax.data.objects import builtin_object
 from f2f_jax.data.sources import object_source
 from f2f_jax.data.splits import load_split, make_split, save_split
 from f2f_jax.errors import MeshError
@@ -56,6 +59,61 @@ def load_or_make_objects(source: str, n: int | None, seed: int, directory, cfg: 
     with atomic_path(meta_path) as tmp:  # written last: it marks the set complete
         tmp.write_text(json.dumps(meta))
     return np.stack(tsdfs).astype(np.float16).astype(np.float32), names
+
+
+def load_or_make_builtin_range(directory, start: int, n: int, seed: int, cfg: GeometryConfig | None = None,
+                               *, progress: bool = True, chunk: int = 64, threads: int | None = None,
+                               ) -> tuple[np.ndarray, list[str]]:
+    """TSDFs [M, R, R, R] float32 and names of the built-in objects ``start .. start + n - 1`` of
+    ``seed``'s stream (``builtin_object``; M <= n: meshes that cannot become a volume are skipped
+    and logged), made on ``threads`` threads (default: every core) in chunks of ``chunk`` objects,
+    each kept in ``directory`` as it is done (``part-SSSSSS.npz``): a killed call loses at most one
+    chunk.  A directory made for another range, seed or resolution is refused."""
+    if start < 0 or n < 0 or chunk < 1:
+        raise ValueError(f"need start >= 0, n >= 0 and chunk >= 1, got {start}, {n}, {chunk}")
+    cfg = cfg or GeometryConfig()
+    directory = Path(directory)
+    meta = {"source": "builtin", "start": start, "n": n, "seed": seed, "resolution": cfg.resolution,
+            "chunk": chunk}
+    meta_path = directory / "source.json"
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        if old != meta:
+            raise ValueError(f"{directory} holds built-in objects made as {old}, not {meta}; "
+                             "choose another directory")
+    else:
+        with atomic_path(meta_path) as tmp:
+            tmp.write_text(json.dumps(meta))
+
+    def make(index: int) -> tuple[np.ndarray | None, str]:
+        mesh = builtin_object(index, seed)
+        name = mesh.metadata["name"]
+        try:
+            return mesh_to_tsdf(mesh, cfg, name=name).astype(np.float16), name
+        except MeshError as exc:
+            log.warning("skipped: %s", exc)
+            return None, name
+
+    tsdfs, names = [], []
+    bar = tqdm(total=n, desc="built-in objects -> TSDF", unit="obj", disable=not progress)
+    with ThreadPoolExecutor(threads or os.cpu_count() or 1) as pool:  # the TSDF's numpy releases the GIL
+        for first in range(start, start + n, chunk):
+            path = directory / f"part-{first:06d}.npz"
+            if not path.exists():
+                indices = range(first, min(first + chunk, start + n))
+                made = [m for m in pool.map(make, indices) if m[0] is not None]
+                with atomic_path(path) as tmp:
+                    np.savez_compressed(tmp, tsdf=np.stack([t for t, _ in made]) if made else
+                                        np.zeros((0,) + (cfg.resolution,) * 3, np.float16),
+                                        names=np.array([name for _, name in made], dtype=str))
+            part = np.load(path)
+            tsdfs.append(part["tsdf"])
+            names += [str(x) for x in part["names"]]
+            bar.update(min(chunk, start + n - first))
+    bar.close()
+    if not tsdfs:
+        return np.zeros((0,) + (cfg.resolution,) * 3, np.float32), []
+    return np.concatenate(tsdfs).astype(np.float32), names
 
 
 def object_split(directory) -> dict[str, list[str]]:

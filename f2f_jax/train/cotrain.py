@@ -12,7 +12,10 @@ where it stopped and ends with the same parameters as one that was never stopped
    held-out set).
 3. ``ae``: the shape VAE on every object and finger volume (``ae_epochs``).
 4. ``fn``: the fitness net on the grasp dataset (``fn_epochs``).
-5. ``gn``: the generator's embedding net regressed onto the imprint fingers' latents (``gn_epochs``).
+5. ``gn``: the generator regressed onto the training objects' imprint fingers (``gn_epochs``): the
+   latent generator onto their latents, the height generator onto their height maps; with
+   ``imprint_objects`` N, the imprints of N more built-in objects too (made into the run's
+   ``imprint_objects/`` in stage 1, never simulated).
 6. ``cycle`` 1..N: sample training objects, generate fingers, simulate them, append to the store;
    once ``warmup_designs`` designs exist, refit the fitness net on balanced batches (half designs
    of every cycle so far, half the pretraining data) until its BCE < ``fn_target_loss``
@@ -42,7 +45,7 @@ from f2f_jax import sim
 from f2f_jax.config import TRIAL_NAMES, Config
 from f2f_jax.errors import ConfigError, F2FError
 from f2f_jax.fileio import atomic_path
-from f2f_jax.geometry import is_feasible, postprocess
+from f2f_jax.geometry import imprint_fingers, is_feasible, postprocess
 from f2f_jax.nets import generator_module
 from f2f_jax.nets.inference import TrainedNets, propose
 from f2f_jax.train import steps as S
@@ -99,6 +102,8 @@ class CoTrainRun:
             raise ConfigError(f"train.cycle_candidates must be >= 1, got {t.cycle_candidates}")
         if t.gn_passes < 1:
             raise ConfigError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
+        if t.imprint_objects < 0:
+            raise ConfigError(f"train.imprint_objects must be >= 0, got {t.imprint_objects}")
         generator_module(cfg.net)  # ConfigError on an unknown net.generator
         if cfg.net.generator == "heights" and cfg.net.height_truncation_voxels != cfg.geometry.truncation_voxels:
             raise ConfigError(
@@ -156,7 +161,8 @@ class CoTrainRun:
         self.train_idx, self.test_idx, self.eval_idx = data.train_idx, data.test_idx, data.eval_idx
         self.pre = data.pre  # the pretraining dataset: dict of arrays, float16 volumes (as stored)
         self._log({"stage": "data", "objects": len(self.names), "train": len(self.train_idx),
-                   "test": len(self.test_idx), "store_rows": len(self.store),
+                   "test": len(self.test_idx), "imprint_objects": len(data.imprint_objects),
+                   "store_rows": len(self.store),
                    "seconds": round(time.perf_counter() - start, 2)})
 
     def _rows(self, select) -> dict[str, np.ndarray]:
@@ -264,8 +270,7 @@ class CoTrainRun:
 
     def pretrain_gn(self) -> None:
         t = self.cfg.train
-        imprint = self.pre["kind"] == "imprint"
-        data = {k: self.pre[k][imprint] for k in ("object", "left", "right")}
+        data = self._imprint_pairs()
         step = S.gn_imprint_step(self.cfg)
         if not self._done("gn", 1):
             # the generator's frozen encoder and decoder are the pretrained VAE's
@@ -281,6 +286,19 @@ class CoTrainRun:
             rec = self._epoch("gn", step, batches, epoch, desc=f"GN epoch {epoch}/{t.gn_epochs}")
             self._log(rec)
             self._save("gn", epoch, 0)
+
+    def _imprint_pairs(self) -> dict[str, np.ndarray]:
+        """The generator's pretraining data, float16: the training objects' imprint rows, then the
+        imprint pairs of the run's extra imprint objects (``TrainConfig.imprint_objects``)."""
+        imprint = self.pre["kind"] == "imprint"
+        data = {k: self.pre[k][imprint] for k in ("object", "left", "right")}
+        extra = self.data.imprint_objects
+        if len(extra):
+            pairs = [imprint_fingers(o.astype(np.float32), self.cfg.geometry) for o in extra]
+            more = {"object": extra, "left": np.stack([p[0] for p in pairs]).astype(np.float16),
+                    "right": np.stack([p[1] for p in pairs]).astype(np.float16)}
+            data = {k: np.concatenate([data[k], more[k]]) for k in data}
+        return data
 
     def generate(self, objects: np.ndarray, batch: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Generated (lefts, rights, feasible) for object volumes, post-processed like design()."""

@@ -15,7 +15,7 @@ from typing import Callable
 import numpy as np
 
 from f2f_jax.config import Config
-from f2f_jax.data import load_or_make_objects, object_split
+from f2f_jax.data import load_or_make_builtin_range, load_or_make_objects, object_split
 from f2f_jax.data.sources import wsg_fmf_fingers
 from f2f_jax.dataset import GraspStore, build_grasp_dataset
 from f2f_jax.errors import F2FError
@@ -34,7 +34,9 @@ Simulate = Callable[[np.ndarray, np.ndarray, np.ndarray, str], np.ndarray]
 class RunData:
     """objects: [N, R, R, R] float32 volumes of the whole set; names: theirs; train_idx, test_idx:
     the split as indices; eval_idx: the held-out objects the generator is evaluated on; store: the
-    run's grasp store; pre: the pretraining rows (``read_rows`` of cycle -1)."""
+    run's grasp store; pre: the pretraining rows (``read_rows`` of cycle -1); imprint_objects:
+    [M, R, R, R] float16 volumes of the objects whose imprints only the generator's pretraining
+    sees (``TrainConfig.imprint_objects``; M = 0 without them)."""
 
     objects: np.ndarray
     names: list[str]
@@ -43,6 +45,7 @@ class RunData:
     eval_idx: np.ndarray
     store: GraspStore
     pre: dict[str, np.ndarray]
+    imprint_objects: np.ndarray
 
 
 def read_rows(store: GraspStore, select: Callable[[int, str], bool]) -> dict[str, np.ndarray]:
@@ -62,7 +65,8 @@ def read_rows(store: GraspStore, select: Callable[[int, str], bool]) -> dict[str
 
 def prepare_run_data(run_dir: Path, cfg: Config, source: str, simulate: Simulate, *,
                      backend: str, executor: str, progress: bool) -> RunData:
-    """Objects, split, the grasp dataset and the held-out baselines of a run (each resumable)."""
+    """Objects, split, the grasp dataset, the held-out baselines and the generator's extra imprint
+    objects of a run (each resumable)."""
     t = cfg.train
     n = t.n_objects if source == "builtin" else None
     tsdfs, names = load_or_make_objects(source, n, t.seed, run_dir / "objects", cfg.geometry,
@@ -78,8 +82,13 @@ def prepare_run_data(run_dir: Path, cfg: Config, source: str, simulate: Simulate
     store.clean_temporary()
     build_grasp_dataset(tsdfs[train_idx], [names[i] for i in train_idx], store, cfg=cfg, seed=t.seed,
                         n_cut=t.cut_pairs, backend=backend, progress=progress, executor=executor)
+    extra = np.zeros((0,) + tsdfs.shape[1:], np.float16)
+    if t.imprint_objects:
+        extra, _ = load_or_make_builtin_range(run_dir / "imprint_objects", t.n_objects, t.imprint_objects,
+                                              t.seed, cfg.geometry, progress=progress)
+        extra = extra.astype(np.float16)  # exact: kept as float16
     data = RunData(objects=tsdfs, names=names, train_idx=train_idx, test_idx=test_idx,
-                   eval_idx=test_idx[: t.eval_objects], store=store, pre={})
+                   eval_idx=test_idx[: t.eval_objects], store=store, pre={}, imprint_objects=extra)
     simulate_baselines(data, cfg, simulate)
     simulate_fmf_baseline(data, cfg, simulate)
     data.pre = read_rows(store, lambda c, k: c == -1)

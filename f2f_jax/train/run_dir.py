@@ -167,6 +167,8 @@ def copy_pretraining(run_dir: Path, src: Path, old: dict, new: dict) -> None:
         shutil.rmtree(stage, ignore_errors=True)
         (stage / "store").mkdir(parents=True)
         shutil.copytree(src / "objects", stage / "objects")
+        if (src / "imprint_objects").is_dir():  # the same config: the same extra objects
+            shutil.copytree(src / "imprint_objects", stage / "imprint_objects")
         for c in pre:
             shutil.copy2(c.path, stage / "store" / c.path.name)
         shutil.copytree(src / "pretrained", stage / "pretrained")
