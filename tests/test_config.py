@@ -1,5 +1,6 @@
 """Config from the command line: ``config.override`` (``--set SECTION.FIELD=VALUE``)."""
 
+import dataclasses
 import json
 
 import pytest
@@ -46,8 +47,32 @@ def test_a_run_directory_keeps_its_overrides(tmp_path):
     write_record(tmp_path, run._run_meta())
     assert json.loads((tmp_path / "run.json").read_text())["config"]["train"]["generator_lr"] == 3e-4
     CoTrainRun(tmp_path, cfg, config_name="tiny", progress=False)  # the same settings: accepted
-    with pytest.raises(CheckpointError, match="train.generator_lr"):
+    with pytest.raises(CheckpointError, match="train.generator_lr") as refused:
         CoTrainRun(tmp_path, config.tiny(), config_name="tiny", progress=False)
+    # the refusal names the flags that resume the run, and they do
+    flags = str(refused.value).split("resume it with ")[1].split("--set ")[1:]
+    assert [f.strip() for f in flags] == ["train.generator_lr=0.0003"]
+    CoTrainRun(tmp_path, config.override(config.tiny(), [f.strip() for f in flags]), config_name="tiny",
+               progress=False)
+
+
+def test_resume_flags_round_trip_through_override():
+    """Every kind of field the resume hint names (int, float, bool, str, tuple, None) reads back
+    through ``--set`` as the value recorded."""
+    from f2f_jax.train.run_dir import differing_fields, meta_config, set_flags
+
+    tiny = config.tiny()
+    recorded = tiny.replace(
+        train=dataclasses.replace(tiny.train, imprint_objects=7,
+                                  generator_lr=None if tiny.train.generator_lr else 2.5e-4),
+        net=dataclasses.replace(tiny.net, generator="latent" if tiny.net.generator == "heights" else "heights",
+                                fitness_fc=(96, 48)),
+        sim=dataclasses.replace(tiny.sim, finger_collisions=not tiny.sim.finger_collisions))
+    old, now = meta_config(recorded), meta_config(config.tiny())
+    fields = differing_fields(old, now)
+    assert len(fields) == 5
+    flags = [f.strip().strip("'") for f in set_flags(old, fields).split("--set ")[1:]]
+    assert meta_config(config.override(config.tiny(), flags)) == old
 
 
 def test_cotrain_refuses_a_bad_set_before_any_work(tmp_path, capsys):

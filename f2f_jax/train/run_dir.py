@@ -78,8 +78,29 @@ def with_recorded_simulator(cfg: Config, recorded: Config | None, run_dir: Path)
     return cfg
 
 
+def set_flags(old: dict, fields: list[str]) -> str:
+    """The ``--set`` flags that give ``fields`` the values recorded in ``old`` (a run.json config),
+    quoted for a shell where they hold spaces or brackets."""
+    flags = []
+    for key in fields:
+        part, name = key.split(".", 1)
+        value = old.get(part, {}).get(name)
+        if isinstance(value, bool):
+            text = str(value).lower()
+        elif value is None:
+            text = "none"
+        elif isinstance(value, list):
+            text = "(" + ", ".join(map(str, value)) + ("," if len(value) == 1 else "") + ")"
+        else:
+            text = str(value)
+        flag = f"{key}={text}"
+        flags.append("--set " + (f"'{flag}'" if any(c in flag for c in " ()[]") else flag))
+    return " ".join(flags)
+
+
 def check_record(run_dir: Path, old: dict, new: dict) -> None:
-    """Refuse to go on in ``run_dir`` (recorded ``old``) with a run described by ``new``."""
+    """Refuse to go on in ``run_dir`` (recorded ``old``) with a run described by ``new``; where they
+    differ in config fields alone, say which ``--set`` flags resume it."""
     if old.get("backend", new["backend"]) != new["backend"]:
         raise CheckpointError(
             f"{run_dir} was simulated with backend {old['backend']!r}; resume it with "
@@ -90,7 +111,9 @@ def check_record(run_dir: Path, old: dict, new: dict) -> None:
             f"{run_dir} holds a run of config {old.get('config_name')!r} on objects "
             f"{old.get('objects')!r}; this one is {new['config_name']!r} on {new['objects']!r}"
             + (f" (they differ in {', '.join(fields)})" if fields else "")
-            + ". Choose another --run-dir (nothing was changed)")
+            + ". Choose another --run-dir (nothing was changed)"
+            + (f", or resume it with {set_flags(old['config'], fields)}"
+               if fields and all(old.get(k) == new[k] for k in ("config_name", "objects")) else ""))
 
 
 def write_record(run_dir: Path, meta: dict) -> None:
