@@ -291,8 +291,7 @@ def test_builtin_range_is_made_in_chunks_kept_on_disk(tmp_path, monkeypatch):
     """The extra imprint objects of a run (TrainConfig.imprint_objects): built-in objects past the
     run's own, the same volumes as made one by one, each chunk kept so that a killed call resumes
     from the chunks it finished, and a directory of another range refused."""
-    from f2f_jax.data import load_or_make_builtin_range
-    from f2f_jax.data import object_set
+    from f2f_jax.data import load_or_make_builtin_range, object_set
 
     tsdfs, names = load_or_make_builtin_range(tmp_path, 5, 3, 0, progress=False, chunk=2, threads=2)
     want = [builtin_object(i, 0) for i in (5, 6, 7)]

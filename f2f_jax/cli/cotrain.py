@@ -8,9 +8,9 @@
 
 Kill it at any moment and rerun the same command: it resumes from the last complete checkpoint
 (and the grasp store keeps every finished simulation).  The run directory holds the object set,
-the store, checkpoints, log.jsonl, curves.png and summary.json.  It ends by printing the held-out
-grasp success of the generator after cycle 0 and after the last cycle beside the imprint and WSG50
-baselines.
+the extra imprint objects (imprint_objects/), the store, checkpoints, log.jsonl, curves.png and
+summary.json.  It ends by printing the held-out grasp success of the generator after cycle 0 and
+after the last cycle beside the imprint and WSG50 baselines.
 """
 
 from __future__ import annotations
