@@ -213,7 +213,9 @@ class TrainConfig:
     # than the fitness net can follow: at 1e-3 (the CPU default's lr) the generator learnt designs
     # the fitness net overrated and held-out grasp success fell from 0.77 to 0.59 in 9 cycles.
     generator_lr: float | None = None
-    objectives: str = "full"  # generator objective: "GS", "GS+R", "GS+S" or "full" (Table 1)
+    # generator objective: "GS", "GS+R", "GS+S" or "full" (Table 1), or "imprint": co-training's
+    # control, as many generator steps on the imprints instead of against the fitness net
+    objectives: str = "full"
     # Co-training trains the nets only once this many designs have been simulated (the original
     # code's cotrain_warmup_datapoints: 2048, four cycles of 512); the fitness net refits on all
     # designs simulated so far, half of each batch, the other half pretraining rows (as the original).

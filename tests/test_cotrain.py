@@ -242,6 +242,41 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
     assert "not empty" in capsys.readouterr().err
 
 
+def test_imprint_control_spends_cotrainings_steps_on_imprints(uninterrupted, tmp_path):
+    """objectives="imprint", co-training's control: from the same pretraining, each cycle's designs
+    are simulated and stored, the generator takes as many steps as co-training's at its epochs'
+    cap, on imprint pairs (its pretraining loss, no fitness term), and the fitness net is never
+    refitted."""
+    src, _ = uninterrupted
+    run_dir = tmp_path / "control"
+    cfg = config.override(config.tiny(), ["train.objectives=imprint"])
+    run = CoTrainRun(run_dir, cfg, config_name="tiny", progress=False)
+    run.fork_pretrained(src)
+    run.run(CYCLES)
+    t = cfg.train
+    gn = [r for r in _log(run_dir) if r.get("stage") == "gn" and r.get("cycle", 0) > 0]
+    warm = [r["cycle"] for r in _log(src) if r.get("stage") == "gn" and r.get("cycle", 0) > 0]
+    steps = -(-len(run.train_idx) // t.cotrain_batch_size)  # the co-training epoch's batches
+    assert sorted({r["cycle"] for r in gn}) == sorted(set(warm)) and warm
+    assert [r["epoch"] for r in gn] == list(range(1, t.max_epochs + 1)) * len(set(warm))
+    assert all(r["steps"] == min(steps, t.max_steps_per_epoch) and "fitness" not in r for r in gn)
+    assert not any(r.get("stage") == "fn" and r.get("cycle", 0) > 0 for r in _log(run_dir))
+    from f2f_jax.dataset.store import GraspStore
+
+    rows = GraspStore(run_dir / "store").read(("cycle",))["cycle"]
+    assert [int((rows == c).sum()) for c in range(1, CYCLES + 1)] == [t.objects_per_cycle] * CYCLES
+    pre, ctrl = load_trained_nets(src / "pretrained"), load_trained_nets(run_dir)
+    assert ctrl.objectives == "imprint"
+    for x, y in zip(jax.tree.leaves(pre.fitness), jax.tree.leaves(ctrl.fitness)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert any(not np.array_equal(np.asarray(x), np.asarray(y))
+               for x, y in zip(jax.tree.leaves(pre.generator), jax.tree.leaves(ctrl.generator)))
+    # its loss is the pretraining's, at the level the pretraining left it (the co-trained
+    # generator's loss is a negative mean fitness)
+    last_pre = [r["loss"] for r in _log(src) if r.get("stage") == "gn" and r.get("cycle") == 0][-1]
+    assert 0 < gn[-1]["loss"] < 2 * last_pre
+
+
 def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted, tmp_path, capsys):
     """experiments/evaluate.py --neighbourhood: both generators' candidates simulated on the run's
     held-out objects plus new built-in ones, and the paired gain is the difference of the two."""

@@ -58,8 +58,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", default="runs/cotrain")
     p.add_argument("--backend", choices=list(config.BACKENDS), default=None,
                    help="simulator (default: mjx on an accelerator, mujoco on a CPU)")
-    p.add_argument("--objectives", choices=["GS", "GS+R", "GS+S", "full"], default=None,
-                   help="fitness outputs the generator maximises (Table 1 ablations)")
+    p.add_argument("--objectives", choices=["GS", "GS+R", "GS+S", "full", "imprint"], default=None,
+                   help="fitness outputs the generator maximises (Table 1 ablations); imprint: "
+                        "co-training's control, the same generator steps on imprints, no fitness net")
     p.add_argument("--imprint-anchor", type=float, default=None, metavar="W",
                    help="weight of the generator's latent distance to the imprint fingers during "
                         "co-training (default: the config's; 0 = the paper's loss)")

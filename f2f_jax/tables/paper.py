@@ -84,5 +84,5 @@ PAPER_TABLE2: dict[str, dict[str, float]] = {name: dict(zip(TABLE2_COLUMNS, valu
 
 # What a checkpoint's ``TrainedNets.objectives`` is called in Table 1.
 OBJECTIVE_ROWS = {"full": "Fit2Form", "GS": "Fit2Form GS", "GS+R": "Fit2Form GS + R",
-                  "GS+S": "Fit2Form GS + S"}
+                  "GS+S": "Fit2Form GS + S", "imprint": "ImpGN"}
 

@@ -23,7 +23,10 @@ where it stopped and ends with the same parameters as one that was never stopped
    ``gn_target_loss`` (plus ``imprint_anchor`` x the latent distance to the imprint fingers, or
    with ``anchor_target="best"`` to each object's best-simulated fingers so far).  With
    ``cycle_candidates`` K > 1 each sampled object gets K designs: the generator's own and K - 1
-   latent perturbations, all simulated.
+   latent perturbations, all simulated.  ``objectives="imprint"`` is the control of co-training:
+   the same cycles, designs simulated and logged, the same generator steps at the same learning
+   rate, but on the pretraining's imprint pairs instead of against the fitness net (which is not
+   refitted): the generator "pretrained for as many extra steps".
 
 Every source of randomness is derived from (seed, stage, cycle, epoch), never from how far an
 earlier process got, which is what makes resuming exact.  Each epoch appends a JSON line to
@@ -52,6 +55,7 @@ from f2f_jax.train import steps as S
 from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
 from f2f_jax.train.curves import plot_curves
 from f2f_jax.train.epochs import LazyBatches, index_batches, run_epoch
+from f2f_jax.train.losses import OBJECTIVE_MASKS
 from f2f_jax.train.run_data import BASELINES, FMF_KIND, prepare_run_data, read_rows
 from f2f_jax.train.run_dir import (
     check_cycles,
@@ -70,6 +74,9 @@ log = logging.getLogger(__name__)
 STAGES = ("ae", "fn", "gn", "cycle")
 _STAGE_ID = {"ae": 1, "fn": 2, "gn": 3, "cycle": 4, "eval": 5}
 ANCHOR_TARGETS = ("imprint", "best")  # TrainConfig.anchor_target
+# TrainConfig.objectives: the fitness outputs the generator maximises (Table 1's ablations), or
+# "imprint": co-training's control, its generator steps spent on the imprints instead
+OBJECTIVES = (*OBJECTIVE_MASKS, "imprint")
 
 
 class CoTrainRun:
@@ -104,6 +111,8 @@ class CoTrainRun:
             raise ConfigError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
         if t.imprint_objects < 0:
             raise ConfigError(f"train.imprint_objects must be >= 0, got {t.imprint_objects}")
+        if t.objectives not in OBJECTIVES:
+            raise ConfigError(f"train.objectives must be one of {OBJECTIVES}, got {t.objectives!r}")
         generator_module(cfg.net)  # ConfigError on an unknown net.generator
         if cfg.net.generator == "heights" and cfg.net.height_truncation_voxels != cfg.geometry.truncation_voxels:
             raise ConfigError(
@@ -290,6 +299,8 @@ class CoTrainRun:
     def _imprint_pairs(self) -> dict[str, np.ndarray]:
         """The generator's pretraining data, float16: the training objects' imprint rows, then the
         imprint pairs of the run's extra imprint objects (``TrainConfig.imprint_objects``)."""
+        if getattr(self, "_pairs", None) is not None:
+            return self._pairs
         imprint = self.pre["kind"] == "imprint"
         data = {k: self.pre[k][imprint] for k in ("object", "left", "right")}
         extra = self.data.imprint_objects
@@ -298,6 +309,7 @@ class CoTrainRun:
             more = {"object": extra, "left": np.stack([p[0] for p in pairs]).astype(np.float16),
                     "right": np.stack([p[1] for p in pairs]).astype(np.float16)}
             data = {k: np.concatenate([data[k], more[k]]) for k in data}
+        self._pairs = data
         return data
 
     def generate(self, objects: np.ndarray, batch: int = 32) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -398,11 +410,12 @@ class CoTrainRun:
         sim_seconds = time.perf_counter() - start
         fn_epochs = gn_epochs = 0
         warm = len(gen["outcome"]) >= t.warmup_designs
+        control = t.objectives == "imprint"  # the generator's steps on imprints; no fitness net
         # refit the fitness net on balanced batches: half designs of all cycles so far, half
         # pretraining rows; then train the generator against it (both after the warm-up)
         half = max(1, t.cotrain_batch_size // 2)
         step = S.fn_step(self.cfg)
-        for epoch in range(1, t.max_epochs + 1 if warm else 1):
+        for epoch in range(1, t.max_epochs + 1 if warm and not control else 1):
             rng = self._rng("cycle", c, 1, epoch)
             nb = self._batches(len(gen["outcome"]), half, rng)
             ob = [rng.choice(len(self.pre["outcome"]), len(b)) for b in nb]
@@ -412,10 +425,13 @@ class CoTrainRun:
             fn_epochs = epoch
             if epoch >= t.min_epochs and rec["loss"] < t.fn_target_loss:
                 break
-        gstep = S.gn_fitness_step(self._cycle_cfg())
+        gstep = (S.gn_imprint_step if control else S.gn_fitness_step)(self._cycle_cfg())
         fit_vars = self.state["fn"].variables
+        pairs = self._imprint_pairs() if control else None
 
         def gn_batch(i, b):
+            if control:  # b indexes the imprint pairs
+                return S.shard(*(pairs[k][b].astype(np.float32) for k in ("object", "left", "right")))
             idx = self.train_idx[b]
             target = () if not t.imprint_anchor else (
                 self._best_fingers(idx, gen) if t.anchor_target == "best" else self._imprints(idx))
@@ -425,11 +441,16 @@ class CoTrainRun:
 
         for epoch in range(1, t.max_epochs + 1 if warm else 1):
             rng = self._rng("cycle", c, 2, epoch)
-            batches = LazyBatches(gn_batch, self._batches(len(self.train_idx), t.cotrain_batch_size, rng))
+            index = self._batches(len(self.train_idx), t.cotrain_batch_size, rng)
+            if control:  # as many steps of as many pairs, drawn from all the imprint pairs
+                drawn = rng.permutation(len(pairs["object"]))
+                index = [drawn[s - len(b):s] for b, s in zip(index, np.cumsum([len(b) for b in index]))]
+            batches = LazyBatches(gn_batch, index)
             rec = self._epoch("gn", gstep, batches, epoch, c, desc=f"cycle {c} GN epoch {epoch}")
             self._log(rec)
             gn_epochs = epoch
-            if epoch >= t.min_epochs and rec.get("fitness_loss", rec["loss"]) < t.gn_target_loss:
+            if (not control and epoch >= t.min_epochs
+                    and rec.get("fitness_loss", rec["loss"]) < t.gn_target_loss):
                 break
         summary = {"stage": "cycle", "cycle": c, "designs": len(new["outcome"]),
                    "designs_so_far": len(gen["outcome"]),
