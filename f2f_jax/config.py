@@ -200,6 +200,9 @@ class TrainConfig:
     # Shuffled passes over the imprint pairs per generator-pretraining epoch (each capped at
     # max_steps_per_epoch steps): more steps without a checkpoint after each pass.
     gn_passes: int = 1
+    # Generator-pretraining epochs after the gn_epochs, at generator_lr (an annealing phase: the
+    # imprint loss plateaus noisily at lr, and co-training's own steps run at generator_lr).
+    gn_anneal_epochs: int = 0
     cycles: int = 20
     objects_per_cycle: int = 512  # paper
     cotrain_batch_size: int = 32  # 16 new + 16 pretrain (paper)

@@ -4,6 +4,7 @@ corrupt are skipped; bad command lines fail cleanly without touching a run."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -275,6 +276,31 @@ def test_imprint_control_spends_cotrainings_steps_on_imprints(uninterrupted, tmp
     # generator's loss is a negative mean fitness)
     last_pre = [r["loss"] for r in _log(src) if r.get("stage") == "gn" and r.get("cycle") == 0][-1]
     assert 0 < gn[-1]["loss"] < 2 * last_pre
+
+
+def test_annealing_epochs_run_at_the_generator_learning_rate(tmp_path):
+    """train.gn_anneal_epochs: pretraining epochs after gn_epochs, at generator_lr. With that rate
+    0 the annealing epoch leaves the generator as the last epoch at lr left it (which moved it);
+    the kept pretrained models are those after the annealing."""
+    tiny = config.tiny()
+    cfg = tiny.replace(train=dataclasses.replace(tiny.train, gn_anneal_epochs=1, generator_lr=0.0))
+    run_dir = tmp_path / "anneal"
+    CoTrainRun(run_dir, cfg, config_name="tiny", progress=False).run(0)
+    gn = [r for r in _log(run_dir) if r.get("stage") == "gn" and r.get("cycle") == 0]
+    assert [r["epoch"] for r in gn] == list(range(1, tiny.train.gn_epochs + 2))
+    ckpt = Checkpoints(run_dir / "checkpoints")
+    models = {}
+    for index in ckpt.steps():
+        _, m, meta = ckpt._restore(index, None)
+        if meta["stage"] == "gn":
+            models[meta["epoch"]] = m["generator"]["params"]
+    last, before, annealed = (models[tiny.train.gn_epochs + k] for k in (0, -1, 1))
+    leaves = lambda tree: [np.asarray(x) for x in jax.tree.leaves(tree)]  # noqa: E731
+    assert any(not np.array_equal(x, y) for x, y in zip(leaves(before), leaves(last)))
+    for x, y in zip(leaves(last), leaves(annealed)):
+        np.testing.assert_array_equal(x, y)
+    kept = Checkpoints(run_dir / "pretrained" / "checkpoints").restore(None)
+    assert kept[2]["epoch"] == tiny.train.gn_epochs + 1
 
 
 def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted, tmp_path, capsys):

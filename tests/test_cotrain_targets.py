@@ -54,6 +54,9 @@ def test_anchor_settings_are_checked():
     bad = cfg.replace(train=cfg.train.__class__(**{**cfg.train.__dict__, "imprint_objects": -1}))
     with pytest.raises(F2FError, match="imprint_objects must be >= 0"):
         CoTrainRun("/nonexistent-run", bad)
+    bad = cfg.replace(train=cfg.train.__class__(**{**cfg.train.__dict__, "gn_anneal_epochs": -2}))
+    with pytest.raises(F2FError, match="gn_anneal_epochs must be >= 0"):
+        CoTrainRun("/nonexistent-run", bad)
     bad = cfg.replace(train=cfg.train.__class__(**{**cfg.train.__dict__, "objectives": "grasp"}))
     with pytest.raises(F2FError, match="objectives must be one of .*'imprint'"):
         CoTrainRun("/nonexistent-run", bad)

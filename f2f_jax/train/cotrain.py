@@ -12,10 +12,11 @@ where it stopped and ends with the same parameters as one that was never stopped
    held-out set).
 3. ``ae``: the shape VAE on every object and finger volume (``ae_epochs``).
 4. ``fn``: the fitness net on the grasp dataset (``fn_epochs``).
-5. ``gn``: the generator regressed onto the training objects' imprint fingers (``gn_epochs``): the
-   latent generator onto their latents, the height generator onto their height maps; with
-   ``imprint_objects`` N, the imprints of N more built-in objects too (made into the run's
-   ``imprint_objects/`` in stage 1, never simulated).
+5. ``gn``: the generator regressed onto the training objects' imprint fingers (``gn_epochs`` at
+   ``lr``, then ``gn_anneal_epochs`` at ``generator_lr``): the latent generator onto their
+   latents, the height generator onto their height maps; with ``imprint_objects`` N, the imprints
+   of N more built-in objects too (made into the run's ``imprint_objects/`` in stage 1, never
+   simulated).
 6. ``cycle`` 1..N: sample training objects, generate fingers, simulate them, append to the store;
    once ``warmup_designs`` designs exist, refit the fitness net on balanced batches (half designs
    of every cycle so far, half the pretraining data) until its BCE < ``fn_target_loss``
@@ -111,6 +112,8 @@ class CoTrainRun:
             raise ConfigError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
         if t.imprint_objects < 0:
             raise ConfigError(f"train.imprint_objects must be >= 0, got {t.imprint_objects}")
+        if t.gn_anneal_epochs < 0:
+            raise ConfigError(f"train.gn_anneal_epochs must be >= 0, got {t.gn_anneal_epochs}")
         if t.objectives not in OBJECTIVES:
             raise ConfigError(f"train.objectives must be one of {OBJECTIVES}, got {t.objectives!r}")
         generator_module(cfg.net)  # ConfigError on an unknown net.generator
@@ -280,19 +283,21 @@ class CoTrainRun:
     def pretrain_gn(self) -> None:
         t = self.cfg.train
         data = self._imprint_pairs()
-        step = S.gn_imprint_step(self.cfg)
+        total = t.gn_epochs + t.gn_anneal_epochs
         if not self._done("gn", 1):
             # the generator's frozen encoder and decoder are the pretrained VAE's
             self.state["gn"] = S.replicate(with_codec_of(self.state["gn"], self.state["ae"]))
-        for epoch in range(1, t.gn_epochs + 1):
+        for epoch in range(1, total + 1):
             if self._done("gn", epoch):
                 continue
+            # the annealing epochs at the co-training's generator learning rate
+            step = S.gn_imprint_step(self.cfg if epoch <= t.gn_epochs else self._cycle_cfg())
             rng = self._rng("gn", epoch)
             index = [b for _ in range(t.gn_passes)
                      for b in self._batches(len(data["object"]), t.fn_batch_size, rng)]
             batches = LazyBatches(lambda i, b: S.shard(*(data[k][b].astype(np.float32)
                                                    for k in ("object", "left", "right"))), index)
-            rec = self._epoch("gn", step, batches, epoch, desc=f"GN epoch {epoch}/{t.gn_epochs}")
+            rec = self._epoch("gn", step, batches, epoch, desc=f"GN epoch {epoch}/{total}")
             self._log(rec)
             self._save("gn", epoch, 0)
 
@@ -505,7 +510,8 @@ class CoTrainRun:
             return  # a resumed run already past pretraining: the state is no longer that
         ckpt = Checkpoints(self.dir / "pretrained" / "checkpoints", max_to_keep=1)
         if not ckpt.steps():
-            meta = {"stage": "gn", "epoch": self.cfg.train.gn_epochs, "cycle": 0,
+            t = self.cfg.train
+            meta = {"stage": "gn", "epoch": t.gn_epochs + t.gn_anneal_epochs, "cycle": 0,
                     "store_rows": len(self.store), "config_name": self.config_name,
                     "config": config_to_dict(self.cfg), "objectives": "imprint"}
             ckpt.save(self.state, self._models_tree(self.state), meta)
