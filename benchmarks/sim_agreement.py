@@ -5,6 +5,7 @@
     python benchmarks/sim_agreement.py --n 4 --n-objects 1 --config tiny --presets fast fast \\
         --threads 1                                                     # smoke run: agreement 1.0
     python benchmarks/sim_agreement.py --n 64 --render 1                # draw a disagreement
+    python benchmarks/sim_agreement.py --object-method tiles            # fast with tiled objects
 
 ``--presets JUDGED JUDGE`` (``config.SIM_PRESETS``; default ``fast reference``) names the preset
 under test and the one it is judged against; ``--backends JUDGED JUDGE`` (default ``mujoco
@@ -61,6 +62,7 @@ from f2f_jax.bench.agreement import (
 from f2f_jax.config import SIM_PRESETS, TRIAL_NAMES
 from f2f_jax.data import mesh_files
 from f2f_jax.geometry.hulls import with_max_vertices
+from f2f_jax.geometry.pieces import OBJECT_METHODS
 
 SHOWN_DIFFERING = 10
 
@@ -82,6 +84,9 @@ def main(argv=None) -> int:
     p.add_argument("--hull-vertices", type=int, default=None, metavar="V",
                    help="the judged side's pieces with at most V vertices each: its object pieces "
                         "reduced from the judge's cached ones, its finger hulls made with V")
+    p.add_argument("--object-method", default=None, choices=OBJECT_METHODS,
+                   help="the judged side's object pieces by this method instead of its preset's "
+                        "(e.g. tiles: the fast preset's protocol with tiled objects)")
     p.add_argument("--seed", type=int, default=0, help="builtin objects, cut and perturbed fingers")
     p.add_argument("--threads", type=int, default=os.cpu_count(),
                    help="MuJoCo worker threads and coacd processes (default: all cores)")
@@ -106,6 +111,8 @@ def main(argv=None) -> int:
                    for name, backend in zip(args.presets, args.backends))
     if args.hull_vertices is not None:
         labels = (f"{labels[0]}/v{args.hull_vertices}", labels[1])
+    if args.object_method is not None:
+        labels = (f"{labels[0]}/{args.object_method}", labels[1])
     if labels[0] == labels[1]:
         labels = (f"{labels[0]}-1", f"{labels[1]}-2")
     backend_of = dict(zip(labels, args.backends))
@@ -128,6 +135,8 @@ def main(argv=None) -> int:
     presets, meshing = {}, None
     for side, (label, name) in enumerate(zip(labels, args.presets)):
         cfg = config.with_sim_preset(base, name)
+        if side == 0 and args.object_method is not None:
+            cfg = cfg.replace(geometry=dataclasses.replace(cfg.geometry, object_method=args.object_method))
         t = time.perf_counter()
         made, seconds = preset_hulls(tsdfs[used], cfg, args.threads)
         if side == 0 and args.hull_vertices is not None:
@@ -197,7 +206,7 @@ def main(argv=None) -> int:
 
     if args.json:
         result = dict(n=len(triples), presets=list(labels), backends=list(args.backends),
-                      hull_vertices=args.hull_vertices,
+                      hull_vertices=args.hull_vertices, object_method=args.object_method,
                       config=args.config, seed=args.seed, source=source,
                       kinds=counts, **stats, object_meshing_s=meshing, steps_per_eval=steps,
                       seconds=seconds, threads=args.threads, differing=differing)

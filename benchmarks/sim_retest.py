@@ -5,7 +5,11 @@
 
 The same (object, left, right) triples are simulated twice with plain MuJoCo: once as configured,
 once with a physically negligible change (``--perturb``: object mass x1.01, finger friction x1.01,
-or a timestep 5% shorter; several may be given, each a rerun).  A design whose outcome
+a timestep 5% shorter, or ``pieces``: the objects' coacd pieces made again with coacd's seed + 1,
+as good a decomposition as the first, to ~25 s of coacd per object and core; several may be given,
+each a rerun).  ``pieces`` is the floor that any other object geometry is judged against
+(``sim_agreement.py``): no decomposition can be asked to agree with coacd's more often than
+coacd's agrees with itself.  A design whose outcome
 flips under a 1% change in mass is decided by the solver's path, not by its shape: no fitness net
 can learn such a flip, and no backend (MJX included, ``mjx_agreement.py``) can be asked to agree
 with MuJoCo more often than MuJoCo agrees with itself.
@@ -45,6 +49,7 @@ PERTURBATIONS = {
     "friction": lambda s: dataclasses.replace(s, finger_friction=s.finger_friction * 1.01),
     "timestep": lambda s: dataclasses.replace(s, timestep=s.timestep * 0.95),
 }
+PIECES = "pieces"  # the object pieces again, by coacd with another seed
 
 
 def retest_stats(first: np.ndarray, second: np.ndarray) -> dict:
@@ -88,7 +93,7 @@ def main(argv=None) -> int:
     p.add_argument("--n", type=int, default=64, help="builtin triples (ignored with --run-dir)")
     p.add_argument("--run-dir", type=Path, default=None, help="a co-training run: its design candidates")
     p.add_argument("--candidates", type=int, default=8, help="candidates per held-out object (--run-dir)")
-    p.add_argument("--perturb", nargs="+", default=["mass"], choices=sorted(PERTURBATIONS),
+    p.add_argument("--perturb", nargs="+", default=["mass"], choices=sorted([*PERTURBATIONS, PIECES]),
                    help="reruns, one per perturbation (default: mass)")
     p.add_argument("--config", default="default", choices=sorted(config.CONFIGS),
                    help="simulation phases of builtin triples (a run uses its own config)")
@@ -104,6 +109,9 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
 
+    from f2f_jax.geometry.coacd_pieces import CoacdSettings
+    from f2f_jax.geometry.hull_pool import object_hulls_many
+
     t = time.perf_counter()
     if args.run_dir is not None:
         nets, objs, names, lefts, rights, feasible, hulls = _run_candidates(
@@ -113,10 +121,9 @@ def main(argv=None) -> int:
         ib, ik = np.nonzero(feasible)
         o, lft, rgt = objs[ib], lefts[ib, ik], rights[ib, ik]
         hl = [hulls[i] for i in ib]
+        volumes, volume_of = list(objs), list(ib)
         what = f"{n} held-out objects x {k} candidates of {args.run_dir} ({len(ib)} feasible)"
     else:
-        from f2f_jax.geometry.hull_pool import object_hulls_many
-
         cfg = config.get(args.config)
         pool, triples = builtin_triples(args.n, args.seed, cfg)
         used = sorted({tr["object"] for tr in triples})
@@ -125,12 +132,22 @@ def main(argv=None) -> int:
         lft = np.stack([tr["left"] for tr in triples])
         rgt = np.stack([tr["right"] for tr in triples])
         hl = [by_object[tr["object"]] for tr in triples]
+        volumes, volume_of = [pool[i] for i in used], [used.index(tr["object"]) for tr in triples]
         what = f"{len(triples)} builtin triples (seed {args.seed}, config {args.config})"
     print(f"prepared {what} in {time.perf_counter() - t:.1f} s", flush=True)
+    if PIECES in args.perturb and cfg.geometry.object_method != "coacd":
+        p.error(f"--perturb {PIECES} remakes coacd pieces; this config's objects are "
+                f"{cfg.geometry.object_method!r}")
 
-    def simulate(c):
+    def simulate(c, pieces=None):
         return sim.evaluate(o, lft, rgt, backend="mujoco", cfg=c, threads=args.threads,
-                            object_hulls=hl, progress=False)
+                            object_hulls=hl if pieces is None else pieces, progress=False)
+
+    def reseeded_pieces():
+        """Every object's pieces by coacd with seed + 1 (cached on disk like the first)."""
+        settings = CoacdSettings(seed=CoacdSettings().seed + 1)
+        made = object_hulls_many(volumes, cfg, workers=args.workers, settings=settings, progress=True)
+        return [made[i] for i in volume_of]
 
     t = time.perf_counter()
     base = simulate(cfg)
@@ -138,7 +155,10 @@ def main(argv=None) -> int:
     results = {"source": what, "n_triples": len(o), "perturbations": {}}
     for name in args.perturb:
         t = time.perf_counter()
-        again = simulate(cfg.replace(sim=PERTURBATIONS[name](cfg.sim)))
+        if name == PIECES:
+            again = simulate(cfg, reseeded_pieces())
+        else:
+            again = simulate(cfg.replace(sim=PERTURBATIONS[name](cfg.sim)))
         rep = agreement_report(base, again)
         print(f"\n{name} rerun ({time.perf_counter() - t:.1f} s)")
         print(f"{'trial':>7s} " + " ".join(f"{n:>5s}" for n in TRIAL_NAMES))

@@ -378,6 +378,27 @@ def test_many_objects_in_worker_processes_match_one_by_one(sphere_tsdf, tmp_path
     assert len(list((tmp_path / "a").glob("*.npz"))) == 2  # both written to the cache by workers
 
 
+def test_many_objects_made_with_other_coacd_settings_are_cached_under_those(tmp_path):
+    """object_hulls_many(settings=...): the workers get the settings (another coacd seed, as
+    ``sim_retest.py --perturb pieces`` asks for) and cache under their key, not the default's."""
+    from f2f_jax.geometry.coacd_pieces import CoacdSettings, cache_path
+    from f2f_jax.geometry.hull_pool import object_hulls_many
+
+    r = G.resolution
+    boxes = []
+    for lo in (8, 12):
+        box = np.ones((r, r, r), np.float32)
+        box[lo:28, 10:30, 1:25] = -1.0  # convex: one hull, no coacd run, so this stays fast
+        boxes.append(box)
+    other = CoacdSettings(seed=CoacdSettings().seed + 1)
+    got = object_hulls_many(boxes, cache_dir=tmp_path, workers=2, progress=False, settings=other)
+    g = G
+    for box, h in zip(boxes, got):
+        assert not isinstance(h, str)
+        assert cache_path(box, g, g.object_hulls, g.hull_vertices, other, tmp_path).exists()
+        assert not cache_path(box, g, g.object_hulls, g.hull_vertices, CoacdSettings(), tmp_path).exists()
+
+
 def test_with_max_vertices_keeps_slots_and_shrinks_each_piece_inside_itself():
     from f2f_jax.geometry.hulls import Hulls, pad_hulls, points_in_hulls, with_max_vertices
 

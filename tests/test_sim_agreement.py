@@ -3,6 +3,7 @@ benchmarks/sim_agreement.py and of the other simulator benchmarks (sim_throughpu
 gpu_check)."""
 
 import importlib
+import json
 
 import numpy as np
 import pytest
@@ -87,6 +88,7 @@ def test_inconsistent_inputs_raise():
     ["--objects", "/nonexistent/meshes"],
     ["--backends", "warp", "bullet"],
     ["--hull-vertices", "3"],
+    ["--object-method", "vhacd"],
 ])
 def test_bad_arguments_exit_2(argv, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -100,6 +102,19 @@ def test_empty_objects_directory_is_refused(tmp_path, capsys):
         agreement_script.main(["--objects", str(tmp_path)])
     assert exc.value.code == 2
     assert "no mesh files" in capsys.readouterr().err
+
+
+def test_object_method_changes_only_the_judged_side(tmp_path):
+    """``--object-method tiles``: the judged side meshes its objects by tiles (timed per object),
+    the judge keeps its preset's coacd pieces; the JSON says so."""
+    out = tmp_path / "agree.json"
+    assert agreement_script.main(["--n", "2", "--n-objects", "1", "--config", "tiny", "--presets", "fast",
+                                  "reference", "--object-method", "tiles", "--threads", "1",
+                                  "--json", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert got["presets"] == ["fast/tiles", "reference"] and got["object_method"] == "tiles"
+    assert got["object_meshing_s"]["max"] > 0  # tiles are made here and timed; coacd would be null
+    assert got["n"] == 2 and len(got["rates"]["all"]) == 2  # both sides simulated
 
 
 def test_perturbed_finger_is_feasible_and_new(cfg):

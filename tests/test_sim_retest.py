@@ -42,3 +42,28 @@ def test_bad_arguments_are_refused_before_any_work(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         retest.main(["--candidates", "1"])
     assert exc.value.code == 2
+
+
+def test_pieces_rerun_asks_coacd_for_the_next_seed_and_simulates_what_it_gets(tmp_path, monkeypatch):
+    """``--perturb pieces``: the rerun's object pieces come from ``object_hulls_many`` with coacd's
+    seed + 1.  Here the stand-in hands back the first run's pieces (no coacd in the fast suite), so
+    the rerun must reproduce the first run to the trial: the pieces it got are the pieces it used."""
+    import json
+
+    from f2f_jax.geometry import hull_pool
+    from f2f_jax.geometry.coacd_pieces import CoacdSettings
+
+    real = hull_pool.object_hulls_many
+    asked = []
+
+    def same_pieces(objects, cfg=None, *, settings=None, **kw):
+        asked.append(settings)
+        return real(objects, cfg, **kw)  # the default settings: the shipped pieces
+
+    monkeypatch.setattr(hull_pool, "object_hulls_many", same_pieces)
+    out = tmp_path / "retest.json"
+    assert retest.main(["--n", "3", "--config", "tiny", "--perturb", "pieces", "--threads", "1",
+                        "--json", str(out)]) == 0
+    assert asked[0] is None and asked[1] == CoacdSettings(seed=CoacdSettings().seed + 1)
+    got = json.loads(out.read_text())["perturbations"]["pieces"]
+    assert got["agreement"] == 1.0 and got["whole_vectors"] == 1.0

@@ -37,39 +37,44 @@ from f2f_jax.geometry.tsdf import check_tsdf
 log = logging.getLogger(__name__)
 
 
-def _object_hulls_or_error(obj, cfg, cache_dir) -> Hulls | str:
+def _object_hulls_or_error(obj, cfg, cache_dir, settings=None) -> Hulls | str:
     try:
-        return object_hulls(obj, cfg, cache_dir=cache_dir)
+        return object_hulls(obj, cfg, cache_dir=cache_dir, settings=settings)
     except (F2FError, ValueError) as exc:
         return f"{type(exc).__name__}: {exc}"
 
 
 def _worker_main(argv: list[str]) -> int:
-    """``python -m f2f_jax.geometry.hull_pool VOLUMES.npy INDICES CACHE_DIR GEOMETRY_JSON ERR_DIR``:
-    decompose the listed volumes into the cache; failures go to ERR_DIR/<index>.txt."""
-    volumes_path, indices, cache_dir, geometry, err_dir = argv
+    """``python -m f2f_jax.geometry.hull_pool VOLUMES.npy INDICES CACHE_DIR GEOMETRY_JSON SETTINGS_JSON
+    ERR_DIR``: decompose the listed volumes into the cache; failures go to ERR_DIR/<index>.txt."""
+    volumes_path, indices, cache_dir, geometry, settings, err_dir = argv
     volumes = np.load(volumes_path, mmap_mode="r")
     g = GeometryConfig(**json.loads(geometry))
+    coacd_settings = CoacdSettings(**json.loads(settings))
     for i in json.loads(indices):
-        res = _object_hulls_or_error(np.array(volumes[i]), g, cache_dir)
+        res = _object_hulls_or_error(np.array(volumes[i]), g, cache_dir, coacd_settings)
         if isinstance(res, str):
             Path(err_dir, f"{i}.txt").write_text(res)
     return 0
 
 
 def object_hulls_many(objects, cfg=None, *, cache_dir=None, workers: int | None = None,
-                      progress: bool | None = None) -> list[Hulls | str]:
+                      progress: bool | None = None,
+                      settings: CoacdSettings | None = None) -> list[Hulls | str]:
     """``object_hulls`` of many object volumes: cached ones read here, the rest decomposed by
     coacd in ``workers`` worker processes (default: one per CPU).  coacd holds the GIL and a core
     for seconds per object, so threads would not run it side by side; the workers are plain
     ``python -m`` subprocesses (not multiprocessing), which needs no ``__main__`` guard in the
     caller's script and never forks a process that runs JAX threads.
 
-    objects: sequence of [R, R, R] volumes (duplicates are decomposed once).
+    objects: sequence of [R, R, R] volumes (duplicates are decomposed once).  settings: coacd's
+    (default ``CoacdSettings()``), e.g. another seed for a decomposition retest
+    (``benchmarks/sim_retest.py --perturb pieces``); they are part of the cache key.
     Returns one entry per object: its Hulls, or the error message of a volume that could not be
     decomposed (so one bad object does not stop a batch).
     """
     g = geometry_config(cfg)
+    settings = settings or CoacdSettings()
     objs = [np.asarray(o, np.float32) for o in objects]
     keys = [hashlib.sha1(np.ascontiguousarray(o).tobytes()).hexdigest() for o in objs]
     first: dict[str, int] = {}
@@ -84,7 +89,7 @@ def object_hulls_many(objects, cfg=None, *, cache_dir=None, workers: int | None 
         except (F2FError, ValueError) as exc:
             made[key] = f"{type(exc).__name__}: {exc}"
             continue
-        path = cache_path(arr, g, g.object_hulls, g.hull_vertices, CoacdSettings(), cache_dir)
+        path = cache_path(arr, g, g.object_hulls, g.hull_vertices, settings, cache_dir)
         cached = stored_hulls(path, g.object_hulls, g.hull_vertices)
         if cached is not None:
             made[key] = cached
@@ -103,7 +108,8 @@ def object_hulls_many(objects, cfg=None, *, cache_dir=None, workers: int | None 
             geometry = json.dumps(dataclasses.asdict(g))
             procs = [subprocess.Popen(
                 [sys.executable, "-m", "f2f_jax.geometry.hull_pool", str(Path(tmp) / "volumes.npy"),
-                 json.dumps(list(range(w, len(todo), workers))), str(directory), geometry, tmp],
+                 json.dumps(list(range(w, len(todo), workers))), str(directory), geometry,
+                 json.dumps(dataclasses.asdict(settings)), tmp],
                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for w in range(workers)]
             while any(p.poll() is None for p in procs):
                 time.sleep(0.5)
@@ -119,11 +125,11 @@ def object_hulls_many(objects, cfg=None, *, cache_dir=None, workers: int | None 
                 if err_file.exists():
                     made[key] = err_file.read_text()
                 else:  # a cache hit, or (worker died) computed here
-                    made[key] = _object_hulls_or_error(objs[first[key]], g, cache_dir)
+                    made[key] = _object_hulls_or_error(objs[first[key]], g, cache_dir, settings)
         bar.n = len(todo)
     else:
         for key, _ in todo:
-            made[key] = _object_hulls_or_error(objs[first[key]], g, cache_dir)
+            made[key] = _object_hulls_or_error(objs[first[key]], g, cache_dir, settings)
             bar.update(1)
     bar.close()
     return [made[k] for k in keys]
