@@ -257,7 +257,7 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
     other[0, 0, 0] = 0.5  # a different volume, same shape
     calls = []
 
-    def fake_object_hulls(obj, cfg, cache_dir=None):
+    def fake_object_hulls(obj, cfg, cache_dir=None, settings=None):
         calls.append(cache_dir)
         if obj[0, 0, 0] == 0.5:
             raise DecompositionError("object: coacd found nothing")
