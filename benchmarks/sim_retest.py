@@ -43,13 +43,15 @@ import numpy as np
 from f2f_jax import config, sim
 from f2f_jax.bench.agreement import agreement_report, builtin_triples
 from f2f_jax.config import TRIAL_NAMES
+from f2f_jax.geometry.coacd_pieces import CoacdSettings
 
 PERTURBATIONS = {
     "mass": lambda s: dataclasses.replace(s, object_mass=s.object_mass * 1.01),
     "friction": lambda s: dataclasses.replace(s, finger_friction=s.finger_friction * 1.01),
     "timestep": lambda s: dataclasses.replace(s, timestep=s.timestep * 0.95),
 }
-PIECES = "pieces"  # the object pieces again, by coacd with another seed
+PIECES = "pieces"  # the object pieces again, by coacd with these settings:
+PIECES_SETTINGS = CoacdSettings(seed=CoacdSettings().seed + 1)
 
 
 def retest_stats(first: np.ndarray, second: np.ndarray) -> dict:
@@ -109,7 +111,6 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return 2
 
-    from f2f_jax.geometry.coacd_pieces import CoacdSettings
     from f2f_jax.geometry.hull_pool import object_hulls_many
 
     t = time.perf_counter()
@@ -145,8 +146,8 @@ def main(argv=None) -> int:
 
     def reseeded_pieces():
         """Every object's pieces by coacd with seed + 1 (cached on disk like the first)."""
-        settings = CoacdSettings(seed=CoacdSettings().seed + 1)
-        made = object_hulls_many(volumes, cfg, workers=args.workers, settings=settings, progress=True)
+        made = object_hulls_many(volumes, cfg, workers=args.workers, settings=PIECES_SETTINGS,
+                                 progress=True)
         return [made[i] for i in volume_of]
 
     t = time.perf_counter()

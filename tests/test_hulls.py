@@ -392,11 +392,10 @@ def test_many_objects_made_with_other_coacd_settings_are_cached_under_those(tmp_
         boxes.append(box)
     other = CoacdSettings(seed=CoacdSettings().seed + 1)
     got = object_hulls_many(boxes, cache_dir=tmp_path, workers=2, progress=False, settings=other)
-    g = G
     for box, h in zip(boxes, got):
         assert not isinstance(h, str)
-        assert cache_path(box, g, g.object_hulls, g.hull_vertices, other, tmp_path).exists()
-        assert not cache_path(box, g, g.object_hulls, g.hull_vertices, CoacdSettings(), tmp_path).exists()
+        assert cache_path(box, G, G.object_hulls, G.hull_vertices, other, tmp_path).exists()
+        assert not cache_path(box, G, G.object_hulls, G.hull_vertices, CoacdSettings(), tmp_path).exists()
 
 
 def test_with_max_vertices_keeps_slots_and_shrinks_each_piece_inside_itself():
