@@ -54,16 +54,26 @@ def test_pieces_rerun_asks_coacd_for_the_next_seed_and_simulates_what_it_gets(tm
     from f2f_jax.geometry.coacd_pieces import CoacdSettings
 
     real = hull_pool.object_hulls_many
-    asked = []
+    asked, handed, simulated = [], [], []
 
     def same_pieces(objects, cfg=None, *, settings=None, **kw):
         asked.append(settings)
-        return real(objects, cfg, **kw)  # the default settings: the shipped pieces
+        made = real(objects, cfg, **kw)  # the default settings: the shipped pieces
+        handed.append(made)
+        return made
+
+    real_evaluate = retest.sim.evaluate
+
+    def recording_evaluate(*args, object_hulls=None, **kw):
+        simulated.append(object_hulls)
+        return real_evaluate(*args, object_hulls=object_hulls, **kw)
 
     monkeypatch.setattr(hull_pool, "object_hulls_many", same_pieces)
+    monkeypatch.setattr(retest.sim, "evaluate", recording_evaluate)
     out = tmp_path / "retest.json"
     assert retest.main(["--n", "3", "--config", "tiny", "--perturb", "pieces", "--threads", "1",
                         "--json", str(out)]) == 0
     assert asked[0] is None and asked[1] == CoacdSettings(seed=CoacdSettings().seed + 1)
+    assert len(simulated) == 2 and all(any(h is m for m in handed[1]) for h in simulated[1])
     got = json.loads(out.read_text())["perturbations"]["pieces"]
     assert got["agreement"] == 1.0 and got["whole_vectors"] == 1.0
