@@ -85,7 +85,8 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-pybullet", action="store_true", help="skip the PyBullet peer")
     p.add_argument("--meshing-n", type=int, default=2,
-                   help="objects whose pieces are timed uncached (coacd: 13-30 s each; default 2)")
+                   help="objects whose pieces are timed uncached (coacd: 13-30 s each; default 2; 0 skips "
+                        "the meshing timings, as the GPU check does)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--task-size", type=int, default=None, help="--executor ray: candidates per task")
     p.add_argument("--backends", default="mujoco",
@@ -94,8 +95,8 @@ def main(argv=None) -> int:
                    help="candidates per batch for mjx and warp (default 64)")
     ray_executor.add_cli_arguments(p)
     args = p.parse_args(argv)
-    if args.n < 1 or args.per_core_n < 0 or args.threads < 1 or args.meshing_n < 1:
-        p.error("--n, --threads and --meshing-n must be >= 1, --per-core-n >= 0")
+    if args.n < 1 or args.per_core_n < 0 or args.threads < 1 or args.meshing_n < 0:
+        p.error("--n and --threads must be >= 1, --per-core-n and --meshing-n >= 0")
     if args.objects is not None and not args.objects.is_dir():
         p.error(f"--objects {args.objects}: no such directory")
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
@@ -122,12 +123,19 @@ def main(argv=None) -> int:
               for name, cfg in presets.items()}
     print(f"prepared {len(objs)} triples and their object pieces in {time.perf_counter() - t:.1f} s "
           "(cached coacd pieces; not timed below)")
-    meshing = meshing_seconds(objs[:args.meshing_n], presets["fast"])
-    tiles_cfg = base.replace(geometry=dataclasses.replace(base.geometry, object_method="tiles"))
-    tiles = meshing_seconds(objs, tiles_cfg)
-    print(f"object meshing, one core, uncached: default preset ({presets['fast'].geometry.object_method}) "
-          f"{meshing.mean():.2f} s mean, {meshing.max():.2f} s max over {len(meshing)} objects; "
-          f"object tiles {tiles.mean():.3f} s mean, {tiles.max():.3f} s max over {len(tiles)}")
+    meshing_keys = {}
+    if args.meshing_n:
+        meshing = meshing_seconds(objs[:args.meshing_n], presets["fast"])
+        tiles_cfg = base.replace(geometry=dataclasses.replace(base.geometry, object_method="tiles"))
+        tiles = meshing_seconds(objs, tiles_cfg)
+        print(f"object meshing, one core, uncached: default preset "
+              f"({presets['fast'].geometry.object_method}) {meshing.mean():.2f} s mean, "
+              f"{meshing.max():.2f} s max over {len(meshing)} objects; "
+              f"object tiles {tiles.mean():.3f} s mean, {tiles.max():.3f} s max over {len(tiles)}")
+        meshing_keys = {"object_meshing_s": {"mean": float(meshing.mean()), "max": float(meshing.max()),
+                                             "n": len(meshing),
+                                             "method": presets["fast"].geometry.object_method},
+                        "tiles_meshing_s": {"mean": float(tiles.mean()), "max": float(tiles.max())}}
 
     rows = {}
 
@@ -194,10 +202,7 @@ def main(argv=None) -> int:
               "mujoco_steps_per_s": fast["steps"] / fast["seconds"],
               "mujoco_steps_per_eval": fast["steps"] / fast["evals"],
               "reference_evals_per_s": rate("reference"),
-              "reference_steps_per_eval": ref["steps"] / ref["evals"],
-              "object_meshing_s": {"mean": float(meshing.mean()), "max": float(meshing.max()),
-                                   "n": len(meshing), "method": presets["fast"].geometry.object_method},
-              "tiles_meshing_s": {"mean": float(tiles.mean()), "max": float(tiles.max())}}
+              "reference_steps_per_eval": ref["steps"] / ref["evals"], **meshing_keys}
     if ray_info:
         result["ray_evals_per_s"] = rate("fast ray")
         result["ray_overhead"] = rate("fast") / rate("fast ray")
