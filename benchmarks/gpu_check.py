@@ -1,21 +1,22 @@
 """The GPU check of issue 16: every accelerator figure in one command and one JSON.
 
-    python benchmarks/gpu_check.py --out gpu_check.json         # one GPU: <= 8 minutes end to end
+    python benchmarks/gpu_check.py --out gpu_check.json         # one GPU: <= 11 minutes end to end
     python benchmarks/gpu_check.py --cpu --tiny --out dry.json   # dry run on a CPU (minutes)
 
 Runs, one after the other, each as its own process with its own time limit (a step that runs
 out of time or fails is recorded with its output's tail, and the next one still runs):
 
 1. ``sim_throughput.py --backends mujoco,warp``: plain MuJoCo on the host's cores (fast and
-   reference presets) and MuJoCo Warp on the same imprint triples tiled to batch sizes up to
-   8,192 (``--sizes``): full evaluations/s, environment steps/s, compile seconds apart, grasp
+   reference presets) and MuJoCo Warp on the same imprint triples tiled to each of ``--sizes``
+   (default 256 and 2,048: on an H200, session 25, warp compiled for 70 s and then ran 23
+   evaluations/s, so 8,192 candidates alone take ~6 minutes): full evaluations/s, environment steps/s, compile seconds apart, grasp
    success and agreement with plain MuJoCo, the device's name.
-2. ``mjx_contacts.py --vertices 32``: MJX's environment steps/s from held grasps at the same
-   batch sizes, compile apart (MJX's full evaluations run at ~2 per second on an H100: a full
-   8,192-candidate batch would take an hour, so its rate is measured per step).
-3. ``sim_agreement.py --presets reference reference --backends warp mujoco``: MuJoCo Warp
+2. ``sim_agreement.py --presets reference reference --backends warp mujoco``: MuJoCo Warp
    against plain MuJoCo on 256 mixed triples (imprint, WSG50, cut, perturbed pairs of 64
    builtin objects): per-trial, per-kind and whole-vector agreement, rates per kind.
+3. ``mjx_contacts.py --vertices 32``: MJX's environment steps/s from held grasps at
+   ``--mjx-sizes``, compile apart (MJX's full evaluations run at ~2 per second on an H100: a full
+   8,192-candidate batch would take an hour, so its rate is measured per step).
 4. ``train_throughput.py --config paper``: the paper-size training step per stage.
 
 The JSON (written after every step, so a killed run keeps what finished) holds ``device``
@@ -28,13 +29,15 @@ agreement triples on 1 object, MJX at batch 2).  Object pieces come from the coa
 carry a warm cache to a bare machine, or the first step spends minutes in coacd.
 
 A bare GPU machine needs the project's dependencies importable.  The device machine of this
-project has JAX, flax, optax, orbax, scipy, scikit-image, h5py and tqdm; carry wheels (Python
-3.12, manylinux x86-64) of mujoco 3.17.0 (27 MB), mujoco-mjx 3.17.0 (7 MB), mujoco-warp 3.17.0
-(2 MB), warp-lang 1.19.0, trimesh and coacd (3 MB), and put the checkout on PYTHONPATH, as the
-device README says.  warp-lang's wheel is 149 MB (1.15-1.18: 149-167 MB), over the 64 MiB a call
-may carry: ``split -b 60M`` it, carry one part per call while the machine stays warm (30 s
-between calls), ``cat`` the parts together there and install; or run the check without warp
-(``--only mjx training``).
+project has JAX, flax, optax, orbax, scipy, scikit-image, h5py, matplotlib and tqdm; carry the
+rest (Python 3.12, manylinux x86-64): mujoco 3.17.0, mujoco-mjx 3.17.0, mujoco-warp 3.17.0,
+warp-lang 1.19.0, trimesh, coacd, shapely, rtree, glfw, pyopengl, websockets, importlib_resources,
+and put the checkout on PYTHONPATH.  warp-lang's wheel alone is 149 MB, over the 64 MiB a call may
+carry; what worked (session 25): ``pip install --no-deps --target site --python-version 3.12
+--platform manylinux_2_28_x86_64 ...`` of all of them here, drop ``warp/examples``,
+``warp/tests``, ``mujoco/experimental/studio`` and the test data (449 MB left), ``tar | xz -6``
+(117 MB), ``split -b 58M`` (two parts); one part per call while the machine stays warm (30 s between
+calls), each copied to /tmp there; the last call ``cat``s and unpacks them and runs this script.
 """
 
 from __future__ import annotations
@@ -87,16 +90,16 @@ def plan(args) -> list[tuple[str, list[str], int]]:
     else:
         sizes = [str(s) for s in args.sizes]
         thr = ["--n", "24", "--batch-sizes", *sizes]
-        mjx = ["--n", "8", "--batch", *sizes, "--steps", "20"]
+        mjx = ["--n", "8", "--batch", *[str(b) for b in args.mjx_sizes], "--steps", "20"]
         agr = ["--n", "256", "--n-objects", "64"]
-        trn = ["--config", "paper", "--steps", "5"]
+        trn = ["--config", "paper", "--steps", "3"]
     return [
         ("throughput", [py, str(HERE / "sim_throughput.py"), *thr, "--per-core-n", "0",
-                        "--no-pybullet", "--meshing-n", "1", "--backends", "mujoco,warp"],
+                        "--no-pybullet", "--meshing-n", "0", "--backends", "mujoco,warp"],
          args.throughput_s),
-        ("mjx", [py, str(HERE / "mjx_contacts.py"), *mjx, "--vertices", "32"], args.mjx_s),
         ("agreement", [py, str(HERE / "sim_agreement.py"), *agr, "--presets", "reference",
                        "reference", "--backends", "warp", "mujoco"], args.agreement_s),
+        ("mjx", [py, str(HERE / "mjx_contacts.py"), *mjx, "--vertices", "32"], args.mjx_s),
         ("training", [py, str(HERE / "train_throughput.py"), *trn], args.training_s),
     ]
 
@@ -106,13 +109,15 @@ def main(argv=None) -> int:
     p.add_argument("--out", type=Path, default=Path("gpu_check.json"), help="the JSON to write")
     p.add_argument("--cpu", action="store_true", help="allow a run without a GPU (a dry run)")
     p.add_argument("--tiny", action="store_true", help="every step at smoke-test size")
-    p.add_argument("--sizes", type=int, nargs="+", default=[64, 1024, 4096, 8192],
-                   help="batch sizes of the batched backends (default 64 1024 4096 8192)")
-    p.add_argument("--throughput-s", type=int, default=200, help="time allowed to step 1 (s)")
-    p.add_argument("--mjx-s", type=int, default=100, help="time allowed to step 2 (s)")
-    p.add_argument("--agreement-s", type=int, default=130, help="time allowed to step 3 (s)")
-    p.add_argument("--training-s", type=int, default=50, help="time allowed to step 4 (s)")
-    p.add_argument("--only", nargs="+", choices=["throughput", "mjx", "agreement", "training"],
+    p.add_argument("--sizes", type=int, nargs="+", default=[256, 2048],
+                   help="warp's batch sizes, candidates (default 256 2048)")
+    p.add_argument("--mjx-sizes", type=int, nargs="+", default=[64, 512],
+                   help="MJX's batch sizes (default 64 512: each size is its own ~20 s compile)")
+    p.add_argument("--throughput-s", type=int, default=240, help="time allowed to step 1 (s)")
+    p.add_argument("--agreement-s", type=int, default=180, help="time allowed to step 2 (s)")
+    p.add_argument("--mjx-s", type=int, default=90, help="time allowed to step 3 (s)")
+    p.add_argument("--training-s", type=int, default=130, help="time allowed to step 4 (s)")
+    p.add_argument("--only", nargs="+", choices=["throughput", "agreement", "mjx", "training"],
                    default=None, help="run only these steps")
     args = p.parse_args(argv)
     info = device_info()
