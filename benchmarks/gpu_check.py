@@ -25,19 +25,15 @@ step's own JSON under its name: ``throughput``, ``mjx``, ``agreement``, ``traini
 
 ``--cpu`` allows running without a GPU (otherwise refused: the sizes would take hours on a CPU);
 ``--tiny`` shrinks every step to a smoke test (tiny config, 2 triples, batches of 2 and 4, 4
-agreement triples on 1 object, MJX at batch 2).  Object pieces come from the coacd cache (``F2F_CACHE_DIR``):
-carry a warm cache to a bare machine, or the first step spends minutes in coacd.
+agreement triples on 1 object, MJX at batch 2).  Every step's objects are builtin objects 0-63
+of seed 0, whose coacd pieces ship with the package: a bare machine runs no coacd (on the H200,
+24 triples and their pieces were ready in 16 s).
 
 A bare GPU machine needs the project's dependencies importable.  The device machine of this
-project has JAX, flax, optax, orbax, scipy, scikit-image, h5py, matplotlib and tqdm; carry the
-rest (Python 3.12, manylinux x86-64): mujoco 3.17.0, mujoco-mjx 3.17.0, mujoco-warp 3.17.0,
-warp-lang 1.19.0, trimesh, coacd, shapely, rtree, glfw, pyopengl, websockets, importlib_resources,
-and put the checkout on PYTHONPATH.  warp-lang's wheel alone is 149 MB, over the 64 MiB a call may
-carry; what worked (session 25): ``pip install --no-deps --target site --python-version 3.12
---platform manylinux_2_28_x86_64 ...`` of all of them here, drop ``warp/examples``,
-``warp/tests``, ``mujoco/experimental/studio`` and the test data (449 MB left), ``tar | xz -6``
-(117 MB), ``split -b 58M`` (two parts); one part per call while the machine stays warm (30 s between
-calls), each copied to /tmp there; the last call ``cat``s and unpacks them and runs this script.
+project has JAX, flax, optax, orbax, scipy, scikit-image, h5py, matplotlib and tqdm; the rest
+(mujoco, mujoco-mjx, mujoco-warp, warp-lang, trimesh, coacd, ...: 117 MB compressed, warp-lang's
+wheel alone 149 MB, over the 64 MiB a call may carry) is packed by ``benchmarks/gpu_pack.py`` into
+parts, one per call; it prints the calls, the last of which runs this script.
 """
 
 from __future__ import annotations
