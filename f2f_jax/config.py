@@ -345,8 +345,8 @@ CONFIGS = {"tiny": tiny, "default": default, "paper": paper}
 # Simulation presets: the collision geometry and the protocol's early exits, by name.  "fast" is
 # what every config above uses; "reference" is the first build's simulator (every phase run to
 # its full length), the judge that benchmarks/sim_agreement.py compares the fast preset with:
-# on 256 mixed builtin triples 99.4% of trials agree (test-retest floor 98.7%) with 1.9x fewer
-# steps.  Only the fields named here differ between presets.
+# on 256 mixed builtin triples 98.1% of trials agree (a 1% heavier object: 98.3%) with 3.9x fewer
+# steps (benchmarks/RESULTS.md).  Only the fields named here differ between presets.
 SIM_PRESETS: dict[str, dict[str, dict]] = {
     "fast": dict(geometry=dict(object_method="coacd"),
                  sim=dict(timestep=0.004, integrator="implicitfast", rest_speed=0.002,
