@@ -26,10 +26,12 @@ start Ray and its workers (timed apart: a long job pays them once).
 
 ``--backends mujoco,mjx,warp`` adds the batched backends on the same triples: the imprint
 triples tiled up to each of ``--batch-sizes``, all 11 trials of every candidate
-(``mjx_batch`` / ``warp_batch`` run directly, so that compiling is timed apart), the reference
-phase lengths (both step every phase in full).  Per backend and batch size: full evaluations/s
-and environment steps/s (one world stepped once) after compiling, compile seconds, grasp
-success, and per-trial agreement with plain MuJoCo's reference outcomes of the same triples.
+(``mjx_batch`` / ``warp_batch`` run directly, so that compiling is timed apart), every phase at
+full length (both step all worlds in lock-step) under each of ``--batched-presets`` (default
+``reference``; ``fast``: its 4 ms implicitfast steps, half as many, keys ``<backend>_fast_...``).
+Per backend, preset and batch size: full evaluations/s and environment steps/s (one world
+stepped once) after compiling, compile seconds, grasp success, and per-trial agreement with
+plain MuJoCo's reference outcomes of the same triples.
 MJX has one contact path (convex meshes, its separating-axis test): ``mjx_mesh_env_steps_per_s``
 is that path's figure, and ``mjx_env_steps_per_s`` the same until a cheaper contact geometry
 exists.  warp runs on every local GPU, else on warp's CPU device (slow: for checks only).
@@ -87,6 +89,8 @@ def main(argv=None) -> int:
     p.add_argument("--meshing-n", type=int, default=2,
                    help="objects whose pieces are timed uncached (coacd: 13-30 s each; default 2; 0 skips "
                         "the meshing timings, as the GPU check does)")
+    p.add_argument("--batched-presets", nargs="+", default=["reference"], choices=["reference", "fast"],
+                   help="presets the batched backends run (default reference)")
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--task-size", type=int, default=None, help="--executor ray: candidates per task")
     p.add_argument("--backends", default="mujoco",
@@ -228,9 +232,11 @@ def main(argv=None) -> int:
         if backend != "mujoco":
             if args.json:  # what is measured so far, in case the batched rows are cut short
                 args.json.write_text(json.dumps(result, indent=1))
-            batched_rows(backend, objs, lefts, rights, pieces["reference"],
-                         rows["reference"]["outcomes"], presets["reference"], args.batch_sizes,
-                         threads=args.threads, result=result, json_path=args.json)
+            for name in args.batched_presets:
+                batched_rows(backend, objs, lefts, rights, pieces[name], rows["reference"]["outcomes"],
+                             presets[name], args.batch_sizes, threads=args.threads, result=result,
+                             json_path=args.json,
+                             label=backend if name == "reference" else f"{backend}_{name}")
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
         print(f"wrote {args.json}")
@@ -238,10 +244,11 @@ def main(argv=None) -> int:
 
 
 def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *, threads, result,
-                 json_path=None) -> None:
-    """Full 11-trial evaluations of the triples tiled to each batch size on ``backend``;
-    prints a table and adds its JSON keys (``<backend>_...``) to ``result``, written to
-    ``json_path`` after every row."""
+                 json_path=None, label=None) -> None:
+    """Full 11-trial evaluations of the triples tiled to each batch size on ``backend`` under
+    ``cfg``; prints a table and adds its JSON keys (``<label>_...``, label defaults to the
+    backend) to ``result``, written to ``json_path`` after every row.  Agreement is with
+    ``reference``, plain MuJoCo's outcomes of the same triples."""
     from f2f_jax.sim.mujoco_cpu import batched_model_options
     from f2f_jax.sim.scene import build_model
 
@@ -255,12 +262,14 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
     options = batched_model_options(backend)
     models = [build_model(h, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg, **options)
               for h, left, right in zip(pieces, lefts, rights)]
-    print(f"\n{backend} on {device}: {len(models)} distinct imprint triples tiled to each batch size, "
-          "reference phases, all 11 trials")
+    label = label or backend
+    print(f"\n{label} on {device}: {len(models)} distinct imprint triples tiled to each batch size, "
+          f"every phase in full at {cfg.sim.timestep * 1e3:g} ms ({cfg.sim.integrator}), all 11 trials; "
+          "agreement with plain MuJoCo's reference")
     print(f"{'batch':>6s} {'compile s':>9s} {'run s':>7s} {'evals/s':>8s} {'env steps/s':>11s} "
           f"{'grasp':>6s} {'agree':>6s}")
     out = result
-    out.update({f"{backend}_device": device, f"{backend}_rows": []})
+    out.update({f"{backend}_device": device, f"{label}_rows": []})
     for size in sizes:
         idx = np.arange(size) % len(models)
         chosen = [models[i] for i in idx]
@@ -279,13 +288,13 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
                    env_steps_per_s=float(res["steps"].sum()) / run_s,
                    grasp_rate=float(res["outcome"][:, 0].mean()), agreement_with_mujoco=agree,
                    approach_s=res.get("approach_seconds"))
-        out[f"{backend}_rows"].append(row)
+        out[f"{label}_rows"].append(row)
         print(f"{size:6d} {compile_s:9.1f} {run_s:7.1f} {row['evals_per_s']:8.2f} "
               f"{row['env_steps_per_s']:11.0f} {row['grasp_rate']:6.2f} {agree:6.3f}", flush=True)
-        best = max(out[f"{backend}_rows"], key=lambda r: r["evals_per_s"])
-        out[f"{backend}_evals_per_s"] = best["evals_per_s"]
-        out[f"{backend}_env_steps_per_s"] = best["env_steps_per_s"]
-        if backend == "mjx":  # one contact path so far: convex meshes
+        best = max(out[f"{label}_rows"], key=lambda r: r["evals_per_s"])
+        out[f"{label}_evals_per_s"] = best["evals_per_s"]
+        out[f"{label}_env_steps_per_s"] = best["env_steps_per_s"]
+        if label == "mjx":  # one contact path so far: convex meshes
             out["mjx_mesh_env_steps_per_s"] = best["env_steps_per_s"]
         if json_path:
             json_path.write_text(json.dumps(out, indent=1))
