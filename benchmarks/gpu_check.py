@@ -9,11 +9,14 @@ out of time or fails is recorded with its output's tail, and the next one still 
 1. ``sim_throughput.py --backends mujoco,warp``: plain MuJoCo on the host's cores (fast and
    reference presets) and MuJoCo Warp on the same imprint triples tiled to each of ``--sizes``
    (default 256 and 2,048: on an H200, session 25, warp compiled for 70 s and then ran 23
-   evaluations/s, so 8,192 candidates alone take ~6 minutes): full evaluations/s, environment steps/s, compile seconds apart, grasp
-   success and agreement with plain MuJoCo, the device's name.
-2. ``sim_agreement.py --presets reference reference --backends warp mujoco``: MuJoCo Warp
-   against plain MuJoCo on 256 mixed triples (imprint, WSG50, cut, perturbed pairs of 64
-   builtin objects): per-trial, per-kind and whole-vector agreement, rates per kind.
+   evaluations/s under ``reference``, so 8,192 candidates alone take ~6 minutes), under each of
+   ``--warp-presets`` (default reference and fast: every phase in full, at 2 ms Euler or 4 ms
+   implicitfast): full evaluations/s, environment steps/s, compile seconds apart, grasp success
+   and agreement with plain MuJoCo, the device's name.
+2. ``sim_agreement.py --presets P reference --backends warp mujoco`` (P: ``--agreement-preset``,
+   default fast, the default's figure; session 25 measured reference: 99.25%): MuJoCo Warp
+   against plain MuJoCo's reference on 256 mixed triples (imprint, WSG50, cut, perturbed pairs of
+   64 builtin objects): per-trial, per-kind and whole-vector agreement, rates per kind.
 3. ``mjx_contacts.py --vertices 32``: MJX's environment steps/s from held grasps at
    ``--mjx-sizes``, compile apart (MJX's full evaluations run at ~2 per second on an H100: a full
    8,192-candidate batch would take an hour, so its rate is measured per step).
@@ -79,13 +82,14 @@ def plan(args) -> list[tuple[str, list[str], int]]:
     """(name, command, seconds allowed) of each step."""
     py = sys.executable
     if args.tiny:
-        thr = ["--config", "tiny", "--n", "2", "--batch-sizes", "2", "4"]
+        thr = ["--config", "tiny", "--n", "2", "--batch-sizes", "2", "4", "--batched-presets",
+               *args.warp_presets]
         mjx = ["--n", "1", "--batch", "2", "--steps", "5"]
         agr = ["--config", "tiny", "--n", "4", "--n-objects", "1"]
         trn = ["--config", "tiny", "--steps", "2"]
     else:
         sizes = [str(s) for s in args.sizes]
-        thr = ["--n", "24", "--batch-sizes", *sizes]
+        thr = ["--n", "24", "--batch-sizes", *sizes, "--batched-presets", *args.warp_presets]
         mjx = ["--n", "8", "--batch", *[str(b) for b in args.mjx_sizes], "--steps", "20"]
         agr = ["--n", "256", "--n-objects", "64"]
         trn = ["--config", "paper", "--steps", "3"]
@@ -93,7 +97,7 @@ def plan(args) -> list[tuple[str, list[str], int]]:
         ("throughput", [py, str(HERE / "sim_throughput.py"), *thr, "--per-core-n", "0",
                         "--no-pybullet", "--meshing-n", "0", "--backends", "mujoco,warp"],
          args.throughput_s),
-        ("agreement", [py, str(HERE / "sim_agreement.py"), *agr, "--presets", "reference",
+        ("agreement", [py, str(HERE / "sim_agreement.py"), *agr, "--presets", args.agreement_preset,
                        "reference", "--backends", "warp", "mujoco"], args.agreement_s),
         ("mjx", [py, str(HERE / "mjx_contacts.py"), *mjx, "--vertices", "32"], args.mjx_s),
         ("training", [py, str(HERE / "train_throughput.py"), *trn], args.training_s),
@@ -107,12 +111,18 @@ def main(argv=None) -> int:
     p.add_argument("--tiny", action="store_true", help="every step at smoke-test size")
     p.add_argument("--sizes", type=int, nargs="+", default=[256, 2048],
                    help="warp's batch sizes, candidates (default 256 2048)")
-    p.add_argument("--mjx-sizes", type=int, nargs="+", default=[64, 512],
-                   help="MJX's batch sizes (default 64 512: each size is its own ~20 s compile)")
-    p.add_argument("--throughput-s", type=int, default=240, help="time allowed to step 1 (s)")
+    p.add_argument("--warp-presets", nargs="+", default=["reference", "fast"], choices=["reference", "fast"],
+                   help="presets warp's throughput rows run (default reference fast)")
+    p.add_argument("--agreement-preset", default="fast", choices=["reference", "fast"],
+                   help="the preset warp runs in the agreement step, judged by plain MuJoCo's "
+                        "reference (default fast)")
+    p.add_argument("--mjx-sizes", type=int, nargs="+", default=[64],
+                   help="MJX's batch sizes (default 64: each size is its own ~20 s compile, and "
+                        "4,096 did not finish 20 steps in 60 s on an H200)")
+    p.add_argument("--throughput-s", type=int, default=300, help="time allowed to step 1 (s)")
     p.add_argument("--agreement-s", type=int, default=180, help="time allowed to step 2 (s)")
-    p.add_argument("--mjx-s", type=int, default=90, help="time allowed to step 3 (s)")
-    p.add_argument("--training-s", type=int, default=130, help="time allowed to step 4 (s)")
+    p.add_argument("--mjx-s", type=int, default=60, help="time allowed to step 3 (s)")
+    p.add_argument("--training-s", type=int, default=120, help="time allowed to step 4 (s)")
     p.add_argument("--only", nargs="+", choices=["throughput", "agreement", "mjx", "training"],
                    default=None, help="run only these steps")
     args = p.parse_args(argv)

@@ -138,7 +138,8 @@ def test_gpu_check_refuses_a_machine_without_a_gpu_unless_asked(monkeypatch, cap
         gpu_check.main(["--out", "unused.json"])
     assert exc.value.code == 2 and "--cpu" in capsys.readouterr().err
     names = [name for name, _, _ in gpu_check.plan(gpu_check.argparse.Namespace(
-        tiny=True, sizes=[2], throughput_s=1, mjx_s=1, agreement_s=1, training_s=1))]
+        tiny=True, sizes=[2], warp_presets=["fast"], agreement_preset="fast", throughput_s=1, mjx_s=1,
+        agreement_s=1, training_s=1))]
     assert names == ["throughput", "agreement", "mjx", "training"]
 
 
