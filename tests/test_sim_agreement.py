@@ -157,3 +157,36 @@ def test_mjx_contacts_refuses_pieces_below_a_tetrahedron(capsys):
     with pytest.raises(SystemExit) as exc:
         contacts.main(["--vertices", "32", "3"])
     assert exc.value.code == 2 and "--vertices" in capsys.readouterr().err
+
+
+def test_sim_throughput_times_no_finger_meshing_in_any_row(monkeypatch, tmp_path):
+    """The simulator meshes each distinct finger once per process: sim_throughput meshes them
+    before its first timed row, or that row (fast) pays for what the next (reference) reuses."""
+    from f2f_jax import sim
+    from f2f_jax.geometry import finger_tiling
+
+    throughput = importlib.import_module("benchmarks.sim_throughput")
+    monkeypatch.setattr(finger_tiling, "_memo", type(finger_tiling._memo)())  # none remembered
+    meshed = {"n": 0, "inside_rows": 0}
+    real_hulls, real_evaluate = finger_tiling.finger_hulls, sim.evaluate
+    rows = {"open": False}
+
+    def counting_hulls(*args, **kwargs):
+        meshed["n"] += 1
+        meshed["inside_rows"] += rows["open"]
+        return real_hulls(*args, **kwargs)
+
+    def timed_row(*args, **kwargs):
+        rows["open"] = True
+        try:
+            return real_evaluate(*args, **kwargs)
+        finally:
+            rows["open"] = False
+
+    monkeypatch.setattr(finger_tiling, "finger_hulls", counting_hulls)
+    monkeypatch.setattr(throughput.sim, "evaluate", timed_row)
+    assert throughput.main(["--config", "tiny", "--n", "1", "--per-core-n", "0", "--no-pybullet",
+                            "--meshing-n", "0", "--threads", "1", "--json", str(tmp_path / "t.json")]) == 0
+    assert meshed["n"] == 2 and meshed["inside_rows"] == 0  # the pair meshed once, before timing
+    result = json.loads((tmp_path / "t.json").read_text())
+    assert "object_meshing_s" not in result and result["n"] == 1
