@@ -23,8 +23,9 @@ out of time or fails is recorded with its output's tail, and the next one still 
 4. ``train_throughput.py --config paper``: the paper-size training step per stage.
 
 The JSON (written after every step, so a killed run keeps what finished) holds ``device``
-(GPU name, warp and JAX devices), ``steps`` ({name: {rc, seconds, command, tail}}) and each
-step's own JSON under its name: ``throughput``, ``mjx``, ``agreement``, ``training``.
+(GPU name, warp and JAX devices), ``steps`` ({name: {rc, seconds, command, tail}}), each
+step's own JSON under its name: ``throughput``, ``mjx``, ``agreement``, ``training``, and
+``summary``: the figures as markdown lines, also printed at the end.
 
 ``--cpu`` allows running without a GPU (otherwise refused: the sizes would take hours on a CPU);
 ``--tiny`` shrinks every step to a smoke test (tiny config, 2 triples, batches of 2 and 4, 4
@@ -104,6 +105,40 @@ def plan(args) -> list[tuple[str, list[str], int]]:
     ]
 
 
+def summary(result: dict) -> list[str]:
+    """The figures a GPU run is for, as markdown lines (a table per step that produced any):
+    warp's rows per preset and batch size, plain MuJoCo on the host, the agreement, MJX's rows,
+    the training steps.  Steps that timed out contribute the rows they finished."""
+    lines = []
+    thr = result.get("throughput") or {}
+    rows = [(k[:-len("_rows")], r) for k, v in thr.items() if k.endswith("_rows") for r in v]
+    if rows:
+        lines += ["| backend | candidates | compile s | run s | evaluations/s | env steps/s | agreement |",
+                  "|---|---|---|---|---|---|---|"]
+        lines += [f"| {label} | {r['batch']} | {r['compile_s']:.1f} | {r['run_s']:.1f} | "
+                  f"{r['evals_per_s']:.2f} | {r['env_steps_per_s']:,.0f} | {r['agreement_with_mujoco']:.2%} |"
+                  for label, r in rows]
+    if "reference_evals_per_s" in thr:
+        lines.append(f"plain MuJoCo on {thr.get('cores')} host threads, {thr.get('n')} triples: "
+                     f"fast {thr['mujoco_evals_per_s']:.2f} evaluations/s, reference "
+                     f"{thr['reference_evals_per_s']:.2f}")
+    agr = result.get("agreement") or {}
+    if "agreement_per_trial" in agr:
+        judged, judge = agr["presets"]
+        gap = agr.get("rate_gap_max", {})
+        lines.append(f"agreement, {judged} against {judge}, {agr['n']} triples: "
+                     f"{agr['agreement_per_trial']:.2%} of trials, whole vectors "
+                     f"{agr['agreement_vectors']:.1%}, largest gap per kind: grasp "
+                     f"{gap.get('grasp', float('nan')):.1f} points, trials {gap.get('trials', float('nan')):.1f}")
+    for r in (result.get("mjx") or {}).get("rows", []):
+        lines.append(f"MJX, {r['vertices']} vertices, {r['batch']} candidates: "
+                     f"{r['env_steps_per_s']:,.0f} env steps/s (compile {r['compile_s']:.1f} s)")
+    for r in (result.get("training") or {}).get("rows", []):
+        lines.append(f"training {r['stage']}, batch {r['batch']}: {r['step_s']:.2f} s per step "
+                     f"(compile + first {r['compile_s']:.1f} s)")
+    return lines
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, default=Path("gpu_check.json"), help="the JSON to write")
@@ -163,8 +198,10 @@ def main(argv=None) -> int:
             if out_json.exists():
                 result[name] = json.loads(out_json.read_text())
         result["seconds"] = time.perf_counter() - start_all
+        result["summary"] = summary(result)
         args.out.write_text(json.dumps(result, indent=1))
     ok = all(s["rc"] == 0 for s in result["steps"].values())
+    print("\n" + "\n".join(result.get("summary", [])))
     print(f"\nwrote {args.out} after {result['seconds']:.0f} s; steps "
           + ", ".join(f"{k}: {'ok' if v['rc'] == 0 else v['rc']}" for k, v in result["steps"].items()))
     return 0 if ok else 1

@@ -190,3 +190,23 @@ def test_sim_throughput_times_no_finger_meshing_in_any_row(monkeypatch, tmp_path
     assert meshed["n"] == 2 and meshed["inside_rows"] == 0  # the pair meshed once, before timing
     result = json.loads((tmp_path / "t.json").read_text())
     assert "object_meshing_s" not in result and result["n"] == 1
+
+
+def test_gpu_check_summary_lists_every_figure_a_step_produced():
+    """The summary gathers what the steps wrote (a step cut short keeps its finished rows) and
+    leaves out steps that wrote nothing."""
+    gpu_check = importlib.import_module("benchmarks.gpu_check")
+    row = dict(batch=2048, compile_s=0.0, run_s=89.0, evals_per_s=23.02, env_steps_per_s=271456.2,
+               agreement_with_mujoco=0.9953)
+    result = {"throughput": {"cores": 16, "n": 24, "mujoco_evals_per_s": 3.39, "reference_evals_per_s": 4.19,
+                             "warp_rows": [row], "warp_fast_rows": [dict(row, evals_per_s=46.1)]},
+              "agreement": {"presets": ["fast@warp", "reference"], "n": 256, "agreement_per_trial": 0.9925,
+                            "agreement_vectors": 0.953, "rate_gap_max": {"grasp": 1.6, "trials": 0.7}},
+              "steps": {"mjx": {"rc": "timeout"}}}
+    lines = gpu_check.summary(result)
+    text = "\n".join(lines)
+    assert "| warp | 2048 | 0.0 | 89.0 | 23.02 | 271,456 | 99.53% |" in lines
+    assert "| warp_fast | 2048 |" in text and "46.10" in text
+    assert "fast@warp against reference, 256 triples: 99.25% of trials" in text
+    assert "reference 4.19" in text and "MJX" not in text and "training" not in text
+    assert gpu_check.summary({"steps": {}}) == []
