@@ -10,8 +10,8 @@ is 149 MB.  This script does here what session 25 did by hand before its H200 ru
 1. ``pip install --no-deps --target`` the packages below for CPython 3.12 on manylinux x86-64
    (downloaded from the package index this machine reaches);
 2. drops what no check imports (``PRUNE``: warp's examples and tests, MuJoCo Studio, test data;
-   449 MB left in 1.19.0 / 3.17.0);
-3. ``tar | xz -6`` (117 MB) and cuts it into parts of ``--part-mib`` (two of 58 MiB), each in
+   438 MiB left with warp-lang 1.19.0 and mujoco 3.17.0);
+3. ``tar | xz -6`` (111 MiB) and cuts it into parts of ``--part-mib`` (two of at most 58 MiB), each in
    its own folder ``.gpu_site/K`` (git-ignored), one folder per ``run`` call's ``carry``;
 4. prints the commands: every call but the last copies its part to /tmp on the machine (a warm
    machine keeps /tmp for 30 s between calls); the last joins and unpacks them into /tmp/site
