@@ -83,20 +83,20 @@ def plan(args) -> list[tuple[str, list[str], int]]:
     """(name, command, seconds allowed) of each step."""
     py = sys.executable
     if args.tiny:
-        thr = ["--config", "tiny", "--n", "2", "--batch-sizes", "2", "4", "--batched-presets",
-               *args.warp_presets]
+        thr = ["--config", "tiny", "--n", "2", "--batch-sizes", "2", "4"]
         mjx = ["--n", "1", "--batch", "2", "--steps", "5"]
         agr = ["--config", "tiny", "--n", "4", "--n-objects", "1"]
         trn = ["--config", "tiny", "--steps", "2"]
     else:
         sizes = [str(s) for s in args.sizes]
-        thr = ["--n", "24", "--batch-sizes", *sizes, "--batched-presets", *args.warp_presets]
+        thr = ["--n", "24", "--batch-sizes", *sizes]
         mjx = ["--n", "8", "--batch", *[str(b) for b in args.mjx_sizes], "--steps", "20"]
         agr = ["--n", "256", "--n-objects", "64"]
         trn = ["--config", "paper", "--steps", "3"]
     return [
         ("throughput", [py, str(HERE / "sim_throughput.py"), *thr, "--per-core-n", "0",
-                        "--no-pybullet", "--meshing-n", "0", "--backends", "mujoco,warp"],
+                        "--no-pybullet", "--meshing-n", "0", "--backends", "mujoco,warp",
+                        "--batched-presets", *args.warp_presets],
          args.throughput_s),
         ("agreement", [py, str(HERE / "sim_agreement.py"), *agr, "--presets", args.agreement_preset,
                        "reference", "--backends", "warp", "mujoco"], args.agreement_s),
