@@ -16,7 +16,7 @@ Triples, per object (``--n-objects`` builtin objects of ``--seed``, or the first
 "wsg50-fmf" (the paper's WSG50 fingers, Schunk's WSG-FMF: ``data.sources.wsg_fmf_fingers``),
 "flat" (``geometry.wsg50_fingers``, ideal flat pads), "cut" (a pair cut from two other objects,
 as the pretraining dataset makes them) and "perturbed" (the imprint pair plus a smooth random
-field: designed-looking fingers, ``bench.agreement.perturbed_finger``).
+field: designed-looking fingers, ``dataset.perturbed_finger``).
 
 Printed: per finger kind and simulator the grasp success, mean trials passed of 11 and mean S and
 R success; per simulator of ours its agreement with PyBullet per trial name, per finger kind,
@@ -50,9 +50,9 @@ from pathlib import Path
 import numpy as np
 
 from f2f_jax import config, sim
-from f2f_jax.bench.agreement import agreement_stats, load_objects, perturbed_finger, rates, vector_text
+from f2f_jax.bench.agreement import agreement_stats, load_objects, rates, vector_text
 from f2f_jax.config import TRIAL_NAMES
-from f2f_jax.dataset.pretraining import pretraining_pairs
+from f2f_jax.dataset.pretraining import perturbed_finger, pretraining_pairs
 from f2f_jax.geometry import wsg50_fingers
 from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.pieces import object_pieces_many

@@ -241,6 +241,10 @@ class TrainConfig:
     n_objects: int = 1000  # built-in objects made when no --objects directory is given
     test_fraction: float = 0.2  # held-out share of the objects (a seeded split, kept in the run's objects/)
     cut_pairs: int = 2  # pretraining pairs cut from other shapes, per object
+    # Perturbed imprint pairs per object in the pretraining dataset (the imprint plus smooth random
+    # fields of rising size, ``dataset.perturbed_pairs``): one object's designs that differ a
+    # little, so the fitness net sees what separates its good fingers from its bad
+    perturbed_pairs: int = 0
     # More objects for the generator's pretraining alone: the imprint pairs of this many built-in
     # objects beyond the run's own (indices n_objects.. of the seed's stream: never one of the
     # run's objects, nor one of ``evaluate.py --fresh``'s, which come from another seed) join the

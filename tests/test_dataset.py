@@ -43,3 +43,41 @@ def test_killed_build_resumes_without_duplicates(tmp_path, three_objects, tiny_c
     kinds, outcome = data["kind"], data["outcome"]
     assert outcome[kinds == "imprint", 0].sum() >= 2
     assert outcome[kinds == "wsg50", 0].sum() == 0
+
+
+def test_perturbed_pairs_are_one_objects_designs_that_differ_a_little(three_objects, tiny_cfg):
+    """Perturbed imprint pairs come after the other pairs without changing them, are feasible, and
+    move further from the imprint as their peak rises."""
+    from f2f_jax.dataset import PERTURBED, pretraining_pairs
+    from f2f_jax.geometry import is_feasible
+
+    tsdfs, _ = three_objects
+    plain = pretraining_pairs(tsdfs, 2, np.random.default_rng([0, 2]), tiny_cfg, n_cut=1)
+    more = pretraining_pairs(tsdfs, 2, np.random.default_rng([0, 2]), tiny_cfg, n_cut=1, n_perturbed=3,
+                             perturb_rng=np.random.default_rng([0, 2, 1]))
+    assert [k for *_, k in more] == [k for *_, k in plain] + [PERTURBED] * 3
+    for (a, b, _), (c, d, _) in zip(plain, more):
+        assert np.array_equal(a, c) and np.array_equal(b, d)
+    imprint_left, imprint_right = plain[0][:2]
+    flipped = []
+    for left, right, _ in more[len(plain):]:
+        assert is_feasible(left, tiny_cfg.geometry) and is_feasible(right, tiny_cfg.geometry)
+        flipped.append(np.count_nonzero((left < 0) != (imprint_left < 0))
+                       + np.count_nonzero((right < 0) != (imprint_right < 0)))
+    assert 0 < flipped[0] < flipped[-1]  # the first is nearly the imprint, the last clearly another design
+    with pytest.raises(ValueError, match="perturb_rng"):
+        pretraining_pairs(tsdfs, 2, np.random.default_rng(0), tiny_cfg, n_perturbed=1)
+
+
+def test_dataset_stores_perturbed_pairs_beside_the_others(tmp_path, three_objects, tiny_cfg):
+    tsdfs, names = three_objects
+    store = GraspStore(tmp_path / "store")
+    summary = build_grasp_dataset(tsdfs[:1], names[:1], store, cfg=tiny_cfg, n_cut=0, n_perturbed=2,
+                                  progress=False)
+    data = store.read(("kind", "outcome"))
+    assert list(data["kind"]) == ["imprint", "wsg50", "perturbed", "perturbed"]
+    assert summary["perturbed"]["pairs"] == 2
+    # the sphere's imprint holds, and so does its least perturbed variant; the flat pads drop it
+    assert data["outcome"][0, 0] == 1 and data["outcome"][2, 0] == 1 and data["outcome"][1, 0] == 0
+    with pytest.raises(ValueError, match="n_perturbed"):
+        build_grasp_dataset(tsdfs[:1], names[:1], store, cfg=tiny_cfg, n_perturbed=-1, progress=False)

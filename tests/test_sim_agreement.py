@@ -119,10 +119,11 @@ def test_object_method_changes_only_the_judged_side(tmp_path):
 
 def test_perturbed_finger_is_feasible_and_new(cfg):
     from f2f_jax.data import builtin_object
+    from f2f_jax.dataset import perturbed_finger
     from f2f_jax.geometry import imprint_fingers, is_feasible, mesh_to_tsdf
 
     left, _ = imprint_fingers(mesh_to_tsdf(builtin_object(0), cfg.geometry), cfg.geometry)
-    finger = agreement.perturbed_finger(left, np.random.default_rng(0), cfg.geometry)
+    finger = perturbed_finger(left, np.random.default_rng(0), cfg.geometry)
     assert finger is not None and finger.shape == left.shape and finger.dtype == np.float32
     assert is_feasible(finger, cfg.geometry)
     assert finger.min() >= -1.0 and finger.max() <= 1.0

@@ -2,7 +2,7 @@
 
 Triples are made as the pretraining dataset makes them (``dataset.pretraining_pairs``: imprint,
 WSG50 and cut pairs) plus designed-looking fingers (an imprint plus a smooth random field,
-``perturbed_finger``): ``mixed_triples`` over any object set (``load_objects``: builtin objects or a
+``dataset.perturbed_finger``): ``mixed_triples`` over any object set (``load_objects``: builtin objects or a
 mesh directory), ``builtin_triples`` over builtin objects only.  ``agreement_stats`` and
 ``agreement_report`` compare two [N, 11] outcome arrays; ``rates`` and ``vector_text`` summarise
 and print them.  Used by ``benchmarks/sim_agreement.py``, ``mjx_agreement.py``, ``sim_retest.py``,
@@ -16,43 +16,20 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
 
 from f2f_jax import sim
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.data import builtin_object, builtin_objects, load_mesh, mesh_files
-from f2f_jax.dataset.pretraining import KINDS, pretraining_pairs
+from f2f_jax.dataset.pretraining import KINDS, PERTURBED, pretraining_pairs
 from f2f_jax.errors import F2FError
-from f2f_jax.geometry import is_feasible, largest_component, mesh_to_tsdf
+from f2f_jax.geometry import mesh_to_tsdf
 from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
 
-FINGER_KINDS = (*KINDS, "perturbed")
-PERTURB_GRID = 5  # the random field's coarse grid, per side, upsampled to the volume
-PERTURB_AMPLITUDE = 0.3  # the field's peak, as a share of the TSDF range [-1, 1]
-PERTURB_TRIES = 10  # draws per finger before a perturbed pair is skipped
+FINGER_KINDS = (*KINDS, PERTURBED)
 SHOWN_DIFFERING = 10
 TRIALS_S = [i for i, name in enumerate(TRIAL_NAMES) if name.startswith("S")]
 TRIALS_R = [i for i, name in enumerate(TRIAL_NAMES) if name.startswith("R")]
-
-
-def perturbed_finger(finger: np.ndarray, rng: np.random.Generator, geometry,
-                     *, amplitude: float = PERTURB_AMPLITUDE, tries: int = PERTURB_TRIES):
-    """A designed-looking variant of ``finger`` [R, R, R]: plus a smooth random field, or None.
-
-    The field is Gaussian noise on a ``PERTURB_GRID``^3 grid, upsampled to R^3 (cubic spline)
-    and scaled to a peak of ``amplitude`` x 2 (the TSDF range); the sum is clipped to [-1, 1]
-    and reduced to its largest component.  Up to ``tries`` draws are made until one is feasible
-    (``geometry.is_feasible``); None when none is.
-    """
-    r = geometry.resolution
-    for _ in range(tries):
-        field = ndimage.zoom(rng.standard_normal((PERTURB_GRID,) * 3), r / PERTURB_GRID, order=3)
-        field *= 2 * amplitude / np.abs(field).max()
-        out = largest_component(np.clip(finger + field, -1.0, 1.0).astype(np.float32))
-        if is_feasible(out, geometry):
-            return out
-    return None
 
 
 def load_objects(n: int, seed: int, directory: Path | None, geometry):
@@ -80,17 +57,15 @@ def mixed_triples(tsdfs: np.ndarray, names: list[str], n: int, seed: int, cfg) -
     """The first ``n`` triples over objects x ``FINGER_KINDS`` (fewer when the set runs out).
 
     Each is a dict: object (index into tsdfs), name, kind, left, right ([R, R, R] float32).
-    Object i's imprint, WSG50 and cut pairs come from ``pretraining_pairs`` with
-    ``default_rng([seed, i])``, its perturbed pair from ``default_rng([seed, i, 1])``; a cut or
-    perturbed pair that cannot be made feasibly is skipped.
+    Object i's pairs are ``pretraining_pairs``' with one cut and one perturbed pair, as the
+    pretraining dataset of seed ``seed`` makes them (``default_rng([seed, i])``, the perturbed pair
+    from ``default_rng([seed, i, 1])``); a cut or perturbed pair that cannot be made feasibly is
+    skipped.
     """
     triples = []
     for i in range(len(tsdfs)):
-        pairs = pretraining_pairs(tsdfs, i, np.random.default_rng([seed, i]), cfg, n_cut=1)
-        rng = np.random.default_rng([seed, i, 1])
-        left, right = (perturbed_finger(f, rng, cfg.geometry) for f in pairs[0][:2])
-        if left is not None and right is not None:
-            pairs.append((left, right, "perturbed"))
+        pairs = pretraining_pairs(tsdfs, i, np.random.default_rng([seed, i]), cfg, n_cut=1, n_perturbed=1,
+                                  perturb_rng=np.random.default_rng([seed, i, 1]))
         for left, right, kind in pairs:
             triples.append(dict(object=i, name=names[i], kind=kind,
                                 left=np.asarray(left, np.float32), right=np.asarray(right, np.float32)))

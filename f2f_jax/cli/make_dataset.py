@@ -1,4 +1,5 @@
-"""Simulate the pretraining grasp dataset (imprint, WSG50 and cut-from-shape finger pairs).
+"""Simulate the pretraining grasp dataset (imprint, WSG50, cut-from-shape and, with
+``--perturbed-pairs``, perturbed imprint finger pairs).
 
     python experiments/make_dataset.py --objects builtin --n 64 --out runs/dataset
     python experiments/make_dataset.py ... --executor ray [--ray-address HOST:PORT]   # a cluster
@@ -31,6 +32,9 @@ def main(argv=None) -> int:
                    help="simulation preset (config.SIM_PRESETS): fast (default) or reference (coacd "
                         "objects, every phase at full length)")
     p.add_argument("--cut-pairs", type=int, default=2, help="pairs cut from other shapes per object")
+    p.add_argument("--perturbed-pairs", type=int, default=None,
+                   help="perturbed imprint pairs per object (one object's designs that differ a little; "
+                        "default: the config's train.perturbed_pairs)")
     p.add_argument("--batch", type=int, default=None,
                    help="objects per stored chunk (default 8; with --executor ray, 2 per cluster "
                         "CPU, at least 8, so every CPU has work)")
@@ -41,6 +45,8 @@ def main(argv=None) -> int:
         p.error("--n must be positive")
     if args.batch is not None and args.batch <= 0:
         p.error("--batch must be positive")
+    if args.cut_pairs < 0 or (args.perturbed_pairs is not None and args.perturbed_pairs < 0):
+        p.error("--cut-pairs and --perturbed-pairs must be >= 0")
     if args.executor == "ray" and args.backend != "mujoco":
         p.error("--executor ray runs the mujoco backend")
     try:
@@ -55,7 +61,9 @@ def main(argv=None) -> int:
     store = GraspStore(out / "store")
     store.clean_temporary()
     summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=args.batch,
-                                  n_cut=args.cut_pairs, backend=args.backend, executor=executor)
+                                  n_cut=args.cut_pairs, backend=args.backend, executor=executor,
+                                  n_perturbed=(cfg.train.perturbed_pairs if args.perturbed_pairs is None
+                                               else args.perturbed_pairs))
     print(json.dumps({"rows": len(store), "this_run": summary}, indent=1))
     return 0
 

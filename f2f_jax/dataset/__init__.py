@@ -2,7 +2,15 @@
 pretraining pairs that fill it.  It sits above ``sim`` (it runs the simulator) and below ``train``
 (which reads it); object sources live below ``sim`` in ``f2f_jax.data``."""
 
-from f2f_jax.dataset.pretraining import KINDS, build_grasp_dataset, pretraining_pairs
+from f2f_jax.dataset.pretraining import (
+    KINDS,
+    PERTURBED,
+    build_grasp_dataset,
+    perturbed_finger,
+    perturbed_pairs,
+    pretraining_pairs,
+)
 from f2f_jax.dataset.store import GraspStore
 
-__all__ = ["KINDS", "GraspStore", "build_grasp_dataset", "pretraining_pairs"]
+__all__ = ["KINDS", "PERTURBED", "GraspStore", "build_grasp_dataset", "perturbed_finger", "perturbed_pairs",
+           "pretraining_pairs"]
