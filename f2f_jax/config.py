@@ -344,7 +344,46 @@ def tiny() -> Config:
     )
 
 
-CONFIGS = {"tiny": tiny, "default": default, "paper": paper}
+def workstation() -> Config:
+    """The default's nets, physics and protocol on >= 100x its simulated results and 10x its objects:
+    a many-core CPU machine (plain MuJoCo in threads, or Ray tasks on a cluster) or ``--backend
+    warp`` on a GPU.  Its figures are in ``planned_simulations``; what it costs, measured and
+    projected, is in benchmarks/RESULTS.md (session 26)."""
+    base = default()
+    return base.replace(
+        train=dataclasses.replace(
+            base.train,
+            # 640 objects (512 training, 128 held-out): 10x the default's; the 576 past the
+            # shipped pieces' 64 go through coacd once (13-30 s each on one core, cached)
+            n_objects=640, eval_objects=64,
+            # per training object: imprint, WSG50, 2 cut pairs and 6 perturbed imprint pairs, and
+            # in every cycle 16 designs of each of 256 objects (the generator's own and 15 height-
+            # noise candidates): one object's designs that differ a little, for the fitness net
+            cut_pairs=2, perturbed_pairs=6, objects_per_cycle=256, cycle_candidates=16,
+            warmup_designs=4096,
+            # 8x the default's steps per epoch, so each cycle's refit sees its new designs
+            max_steps_per_epoch=64,
+        ),
+    )
+
+
+CONFIGS = {"tiny": tiny, "default": default, "paper": paper, "workstation": workstation}
+
+
+def planned_simulations(cfg: Config, n_objects: int | None = None) -> dict[str, int]:
+    """How many 11-trial evaluations a run of ``cfg`` simulates, by stage, on ``n_objects`` objects
+    (default: the config's built-in ``n_objects``): the pretraining dataset (at most: cut and
+    perturbed pairs that cannot be made feasibly are skipped), the held-out baselines (imprint
+    and flat pads; WSG-FMF with the pybullet extra adds one per held-out object), the co-training
+    cycles' designs and the two held-out evaluations of the generator; "total" sums them."""
+    t = cfg.train
+    n = t.n_objects if n_objects is None else n_objects
+    n_test = min(max(int(round(t.test_fraction * n)), 1), n - 1) if n >= 2 else 0
+    out = {"dataset": (n - n_test) * (2 + t.cut_pairs + t.perturbed_pairs), "baselines": 2 * n_test,
+           "cycles": t.cycles * t.objects_per_cycle * t.cycle_candidates,
+           "heldout": 2 * min(t.eval_objects, n_test)}
+    out["total"] = sum(out.values())
+    return out
 
 # Simulation presets: the collision geometry and the protocol's early exits, by name.  "fast" is
 # what every config above uses; "reference" is the first build's simulator (every phase run to

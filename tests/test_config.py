@@ -82,3 +82,16 @@ def test_cotrain_refuses_a_bad_set_before_any_work(tmp_path, capsys):
     assert cotrain.main(["--config", "tiny", "--run-dir", str(run_dir), "--set", "train.nope=1"]) == 2
     assert "train has no field 'nope'" in capsys.readouterr().err
     assert not run_dir.exists()
+
+
+def test_workstation_config_plans_100x_the_defaults_simulations_on_8x_its_objects():
+    """Issue 18's sizes: the workstation run simulates >= 100x the default run's evaluations, on
+    >= 8x its objects, with designs of one object that differ a little in both data sources."""
+    default, work = config.default(), config.workstation()
+    plan, base = config.planned_simulations(work), config.planned_simulations(default)
+    assert base == {"dataset": 51 * 3, "baselines": 26, "cycles": 640, "heldout": 26, "total": 845}
+    assert plan["total"] >= 100 * base["total"] and work.train.n_objects >= 8 * default.train.n_objects
+    assert work.train.perturbed_pairs > 0 and work.train.cycle_candidates > 1
+    assert (work.net, work.sim, work.geometry) == (default.net, default.sim, default.geometry)
+    assert config.get("workstation") == work
+    assert config.planned_simulations(default, n_objects=10)["dataset"] == 8 * 3  # 2 held out

@@ -5,6 +5,8 @@
     python experiments/cotrain.py --cycles 20 --objectives GS --from-pretrained runs/cotrain \
         --run-dir runs/cotrain-GS                                # an ablation on the same pretraining
     python experiments/cotrain.py --cycles 20 --executor ray   # simulation on a Ray cluster
+    python experiments/cotrain.py --cycles 20 --config workstation --xla-threads 0 --run-dir runs/ws
+                                                # 100x the simulations: a many-core machine
 
 Kill it at any moment and rerun the same command: it resumes from the last complete checkpoint
 (and the grasp store keeps every finished simulation).  The run directory holds the object set,
@@ -51,7 +53,9 @@ def _table(summary: dict) -> str:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cycles", type=int, default=None, help="co-training cycles (default: the config's)")
-    p.add_argument("--config", default="default", help="tiny | default (CPU) | paper (GPU sizes)")
+    p.add_argument("--config", default="default",
+                   help="tiny | default (CPU, 2 cores) | workstation (the default's nets on 100x its "
+                        "simulations: many cores, a cluster or --backend warp) | paper (GPU sizes)")
     p.add_argument("--objects", default="builtin",
                    help="builtin (procedural, no download) | pybullet | a directory of meshes")
     p.add_argument("--n-objects", type=int, default=None, help="built-in objects to make (default: config)")
@@ -139,6 +143,12 @@ def main(argv=None) -> int:
         return fail(str(exc))
 
     from f2f_jax.train.cotrain import CoTrainRun  # JAX: imported after the XLA flags are set
+
+    if args.objects == "builtin" and not args.quiet:
+        plan = config.planned_simulations(cfg)
+        print(f"cotrain: {args.config} on {cfg.train.n_objects} built-in objects simulates about "
+              f"{plan['total']:,} grasp evaluations (dataset {plan['dataset']:,}, cycles {plan['cycles']:,}, "
+              f"held-out {plan['baselines'] + plan['heldout']:,})", flush=True)
 
     if args.executor == "ray" and args.backend not in (None, "mujoco"):
         return fail(f"--executor ray distributes the mujoco backend; drop --backend {args.backend}")

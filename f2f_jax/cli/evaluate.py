@@ -113,7 +113,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--tables", default="1,2", help="which tables: 1, 2 or 1,2")
     p.add_argument("--out", default=None, help="output directory (default RUN_DIR/eval, or runs/eval)")
     p.add_argument("--config", default=None,
-                   help="tiny | default | paper: the simulator settings (default: the run's, else default)")
+                   help="tiny | default | workstation | paper: the simulator settings (default: the run's, else default)")
     for flag, metavar, text in COUNT_FLAGS:
         p.add_argument(flag, type=int, default=None, metavar=metavar, help=text)
     p.add_argument("--backend", choices=list(config.BACKENDS), default="mujoco")
