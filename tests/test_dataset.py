@@ -81,3 +81,25 @@ def test_dataset_stores_perturbed_pairs_beside_the_others(tmp_path, three_object
     assert data["outcome"][0, 0] == 1 and data["outcome"][2, 0] == 1 and data["outcome"][1, 0] == 0
     with pytest.raises(ValueError, match="n_perturbed"):
         build_grasp_dataset(tsdfs[:1], names[:1], store, cfg=tiny_cfg, n_perturbed=-1, progress=False)
+
+
+def test_make_dataset_refuses_to_mix_settings_in_one_directory(tmp_path, capsys):
+    """A rerun of make_dataset.py goes on only with the settings its rows were made with: other cut
+    or perturbed pair counts would leave objects with different pairs in one store."""
+    import json
+
+    from f2f_jax.cli import make_dataset
+
+    out = tmp_path / "ds"
+    out.mkdir()
+    (out / "dataset.json").write_text(json.dumps({
+        "config": "tiny", "seed": 0, "sim_preset": "fast", "cut_pairs": 1, "perturbed_pairs": 0,
+        "backend": "mujoco"}))
+    with pytest.raises(SystemExit) as exc:
+        make_dataset.main(["--out", str(out), "--config", "tiny", "--cut-pairs", "1", "--perturbed-pairs", "4"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.split("error:", 1)[1]
+    assert "--perturbed-pairs 0" in err and "--perturbed-pairs 4" in err and "--cut-pairs" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["dataset.json"]  # nothing made, nothing changed
+    with pytest.raises(SystemExit):
+        make_dataset.main(["--out", str(out), "--config", "tiny", "--cut-pairs", "-1"])

@@ -4,7 +4,8 @@
     python experiments/make_dataset.py --objects builtin --n 64 --out runs/dataset
     python experiments/make_dataset.py ... --executor ray [--ray-address HOST:PORT]   # a cluster
 
-Kill it at any moment and rerun the same command: it continues where it stopped.  With
+Kill it at any moment and rerun the same command: it continues where it stopped (``OUT/dataset.json``
+keeps the settings; a rerun with other ones is refused, naming the flags that go on with it).  With
 ``--executor ray`` the simulation runs in Ray tasks and this process alone writes the store.
 """
 
@@ -18,7 +19,31 @@ from f2f_jax.data import load_or_make_objects
 from f2f_jax.dataset.pretraining import build_grasp_dataset
 from f2f_jax.dataset.store import GraspStore
 from f2f_jax.errors import F2FError
+from f2f_jax.fileio import atomic_path
 from f2f_jax.sim import ray_executor
+
+RECORD = "dataset.json"  # the settings a dataset directory's rows were made with
+FLAGS = {"config": "--config", "seed": "--seed", "sim_preset": "--sim-preset", "cut_pairs": "--cut-pairs",
+         "perturbed_pairs": "--perturbed-pairs", "backend": "--backend"}
+
+
+def check_record(out: Path, record: dict) -> None:
+    """Refuse to add rows to ``out`` made with other settings than its ``dataset.json`` records
+    (the finger pairs of an object depend on all of them: a mixed store would hold some objects'
+    pairs of one kind and others' of another); name the flags that resume it."""
+    path = out / RECORD
+    if not path.exists():
+        return
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise F2FError(f"{path}: unreadable ({exc}); move it away to start the dataset again") from exc
+    differ = [k for k in FLAGS if k in old and old[k] != record[k]]
+    if differ:
+        resume = " ".join(f"{FLAGS[k]} {old[k]}" for k in differ)
+        raise F2FError(f"{out} holds a dataset made with {resume}; this run asks for "
+                       + " ".join(f"{FLAGS[k]} {record[k]}" for k in differ)
+                       + f". Rerun with {resume} to go on with it, or choose another --out (nothing was changed)")
 
 
 def main(argv=None) -> int:
@@ -57,13 +82,21 @@ def main(argv=None) -> int:
     if args.sim_preset is not None:
         cfg = config.with_sim_preset(cfg, args.sim_preset)
     out = Path(args.out)
+    n_perturbed = cfg.train.perturbed_pairs if args.perturbed_pairs is None else args.perturbed_pairs
+    record = {"config": args.config, "seed": args.seed, "sim_preset": config.sim_preset_name(cfg),
+              "cut_pairs": args.cut_pairs, "perturbed_pairs": n_perturbed, "backend": args.backend}
+    try:
+        check_record(out, record)
+    except F2FError as exc:
+        p.error(str(exc))
     tsdfs, names = load_or_make_objects(args.objects, args.n, args.seed, out / "objects", cfg.geometry)
     store = GraspStore(out / "store")
     store.clean_temporary()
+    with atomic_path(out / RECORD) as tmp:
+        tmp.write_text(json.dumps(record, indent=1))
     summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=args.batch,
-                                  n_cut=args.cut_pairs, backend=args.backend, executor=executor,
-                                  n_perturbed=(cfg.train.perturbed_pairs if args.perturbed_pairs is None
-                                               else args.perturbed_pairs))
+                                  n_cut=args.cut_pairs, n_perturbed=n_perturbed, backend=args.backend,
+                                  executor=executor)
     print(json.dumps({"rows": len(store), "this_run": summary}, indent=1))
     return 0
 
