@@ -385,6 +385,13 @@ def planned_simulations(cfg: Config, n_objects: int | None = None) -> dict[str, 
     out["total"] = sum(out.values())
     return out
 
+
+def planned_row_bytes(cfg: Config, n_objects: int | None = None) -> int:
+    """Bytes of the grasp rows a run of ``cfg`` holds in memory by its last cycle: the pretraining
+    dataset and every cycle's designs, three float16 volumes each (``train.run_data.read_rows``)."""
+    plan = planned_simulations(cfg, n_objects)
+    return (plan["dataset"] + plan["cycles"]) * 3 * 2 * cfg.geometry.resolution ** 3
+
 # Simulation presets: the collision geometry and the protocol's early exits, by name.  "fast" is
 # what every config above uses; "reference" is the first build's simulator (every phase run to
 # its full length), the judge that benchmarks/sim_agreement.py compares the fast preset with:

@@ -95,3 +95,13 @@ def test_workstation_config_plans_100x_the_defaults_simulations_on_8x_its_object
     assert (work.net, work.sim, work.geometry) == (default.net, default.sim, default.geometry)
     assert config.get("workstation") == work
     assert config.planned_simulations(default, n_objects=10)["dataset"] == 8 * 3  # 2 held out
+
+
+def test_cotrain_says_what_a_run_simulates_and_warns_when_its_rows_outgrow_the_machine():
+    from f2f_jax.cli.cotrain import _plan
+
+    text, warning = _plan(config.workstation(), "workstation", memory=128 * 2**30)
+    assert "87,424 grasp evaluations" in text and "31.1 GiB" in text and warning is None
+    _, warning = _plan(config.workstation(), "workstation", memory=32 * 2**30)
+    assert "32 GiB" in warning and "cycle_candidates" in warning
+    assert _plan(config.default(), "default", memory=None)[1] is None

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -126,6 +127,30 @@ def _run_config(args):
     return config.override(cfg, args.set)
 
 
+def _plan(cfg, config_name: str, memory: int | None) -> tuple[str, str | None]:
+    """What a run on built-in objects will simulate and hold (``config.planned_simulations``), and
+    a warning when its rows would fill over 80% of ``memory`` bytes (None: unknown)."""
+    plan, rows = config.planned_simulations(cfg), config.planned_row_bytes(cfg)
+    text = (f"cotrain: {config_name} on {cfg.train.n_objects} built-in objects simulates about "
+            f"{plan['total']:,} grasp evaluations (dataset {plan['dataset']:,}, cycles {plan['cycles']:,}, "
+            f"held-out {plan['baselines'] + plan['heldout']:,}); its grasp rows take {rows / 2**30:.1f} GiB "
+            "of memory by the last cycle")
+    warning = None
+    if memory and rows > 0.8 * memory:
+        warning = (f"cotrain: warning: that is over 80% of this machine's {memory / 2**30:.0f} GiB: the run "
+                   "would run out of memory in its later cycles (lower train.cycle_candidates or "
+                   "train.objects_per_cycle with --set, or use a larger machine)")
+    return text, warning
+
+
+def _machine_memory() -> int | None:
+    """This machine's physical memory in bytes, or None where the OS does not say."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
 
@@ -144,11 +169,12 @@ def main(argv=None) -> int:
 
     from f2f_jax.train.cotrain import CoTrainRun  # JAX: imported after the XLA flags are set
 
-    if args.objects == "builtin" and not args.quiet:
-        plan = config.planned_simulations(cfg)
-        print(f"cotrain: {args.config} on {cfg.train.n_objects} built-in objects simulates about "
-              f"{plan['total']:,} grasp evaluations (dataset {plan['dataset']:,}, cycles {plan['cycles']:,}, "
-              f"held-out {plan['baselines'] + plan['heldout']:,})", flush=True)
+    if args.objects == "builtin":
+        plan, warning = _plan(cfg, args.config, _machine_memory())
+        if not args.quiet:
+            print(plan, flush=True)
+        if warning:
+            print(warning, file=sys.stderr, flush=True)
 
     if args.executor == "ray" and args.backend not in (None, "mujoco"):
         return fail(f"--executor ray distributes the mujoco backend; drop --backend {args.backend}")
