@@ -388,9 +388,11 @@ def planned_simulations(cfg: Config, n_objects: int | None = None) -> dict[str, 
 
 def planned_row_bytes(cfg: Config, n_objects: int | None = None) -> int:
     """Bytes of the grasp rows a run of ``cfg`` holds in memory by its last cycle: the pretraining
-    dataset and every cycle's designs, three float16 volumes each (``train.run_data.read_rows``)."""
+    dataset and every cycle's designs, two float16 finger volumes each, and one float16 volume per
+    object (rows share their object's: ``train.run_data.SharedVolumes``)."""
     plan = planned_simulations(cfg, n_objects)
-    return (plan["dataset"] + plan["cycles"]) * 3 * 2 * cfg.geometry.resolution ** 3
+    n = cfg.train.n_objects if n_objects is None else n_objects
+    return (2 * (plan["dataset"] + plan["cycles"]) + n) * 2 * cfg.geometry.resolution ** 3
 
 # Simulation presets: the collision geometry and the protocol's early exits, by name.  "fast" is
 # what every config above uses; "reference" is the first build's simulator (every phase run to

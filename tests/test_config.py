@@ -101,7 +101,7 @@ def test_cotrain_says_what_a_run_simulates_and_warns_when_its_rows_outgrow_the_m
     from f2f_jax.cli.cotrain import _plan
 
     text, warning = _plan(config.workstation(), "workstation", memory=128 * 2**30)
-    assert "87,424 grasp evaluations" in text and "31.1 GiB" in text and warning is None
-    _, warning = _plan(config.workstation(), "workstation", memory=32 * 2**30)
-    assert "32 GiB" in warning and "cycle_candidates" in warning
+    assert "87,424 grasp evaluations" in text and "20.8 GiB" in text and warning is None
+    _, warning = _plan(config.workstation(), "workstation", memory=24 * 2**30)
+    assert "24 GiB" in warning and "cycle_candidates" in warning
     assert _plan(config.default(), "default", memory=None)[1] is None

@@ -103,3 +103,35 @@ def test_make_dataset_refuses_to_mix_settings_in_one_directory(tmp_path, capsys)
     assert sorted(p.name for p in out.iterdir()) == ["dataset.json"]  # nothing made, nothing changed
     with pytest.raises(SystemExit):
         make_dataset.main(["--out", str(out), "--config", "tiny", "--cut-pairs", "-1"])
+
+
+def test_rows_share_their_objects_volume_and_read_back_as_stored(tmp_path):
+    """read_rows with the run's objects: every field as a plain read gives it, the object volumes
+    one copy per object; a store of another object set is refused."""
+    from f2f_jax.errors import F2FError
+    from f2f_jax.train.run_data import SharedVolumes, read_rows
+
+    rng = np.random.default_rng(0)
+    objects = rng.uniform(-1, 1, (3, 4, 4, 4)).astype(np.float32)
+    store = GraspStore(tmp_path / "store")
+    pick = np.array([2, 2, 0, 1, 2])
+    for cycle, rows in ((1, pick[:3]), (2, pick[3:])):
+        store.append(objects[rows], rng.uniform(-1, 1, (len(rows), 4, 4, 4)), rng.uniform(-1, 1, (len(rows), 4, 4, 4)),
+                     rng.integers(0, 2, (len(rows), 11)), kind="generated", names=[f"o{i}" for i in rows],
+                     cycle=cycle)
+    names = ["o0", "o1", "o2"]
+    plain = read_rows(store, lambda c, k: c >= 1)
+    shared = read_rows(store, lambda c, k: c >= 1, objects=(objects.astype(np.float16), names))
+    assert isinstance(shared["object"], SharedVolumes) and shared["object"].shape == plain["object"].shape
+    for k in plain:
+        got = shared[k][np.arange(len(pick))] if k == "object" else shared[k]
+        np.testing.assert_array_equal(got, plain[k])
+        assert got.dtype == plain[k].dtype
+    assert len(shared["object"]) == 5 and shared["object"].table.shape[0] == 3
+    later = read_rows(store, lambda c, k: c == 2, objects=(shared["object"].table, names))
+    joined = read_rows(store, lambda c, k: c == 1, objects=(shared["object"].table, names))["object"]
+    np.testing.assert_array_equal(joined.concatenate(later["object"])[[0, 4]], plain["object"][[0, 4]])
+    with pytest.raises(F2FError, match="not the run's object"):
+        read_rows(store, lambda c, k: c >= 1, objects=(objects[::-1].astype(np.float16), names))
+    with pytest.raises(F2FError, match="not the run's"):
+        read_rows(store, lambda c, k: c >= 1, objects=(objects[:2].astype(np.float16), names[:2]))

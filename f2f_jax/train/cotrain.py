@@ -57,7 +57,7 @@ from f2f_jax.train.checkpoint import Checkpoints, config_to_dict
 from f2f_jax.train.curves import plot_curves
 from f2f_jax.train.epochs import LazyBatches, index_batches, run_epoch
 from f2f_jax.train.losses import OBJECTIVE_MASKS
-from f2f_jax.train.run_data import BASELINES, FMF_KIND, prepare_run_data, read_rows
+from f2f_jax.train.run_data import BASELINES, FMF_KIND, SharedVolumes, prepare_run_data, read_rows
 from f2f_jax.train.run_dir import (
     check_cycles,
     check_record,
@@ -177,8 +177,14 @@ class CoTrainRun:
                    "store_rows": len(self.store),
                    "seconds": round(time.perf_counter() - start, 2)})
 
-    def _rows(self, select) -> dict[str, np.ndarray]:
-        return read_rows(self.store, select)
+    def _rows(self, select, shared: bool = False) -> dict[str, np.ndarray]:
+        """Store rows (``read_rows``); ``shared``: their object volumes shared from the run's
+        objects (``SharedVolumes``) rather than read, one copy per object however many rows."""
+        if not shared:
+            return read_rows(self.store, select)
+        if getattr(self, "_object_table", None) is None:
+            self._object_table = self.objects.astype(np.float16)  # exact: as the store holds them
+        return read_rows(self.store, select, objects=(self._object_table, self.names))
 
     def _simulate(self, objs, lefts, rights, what: str) -> np.ndarray:
         if self.progress:
@@ -347,10 +353,12 @@ class CoTrainRun:
         from the store (float16, as on a resume) and kept between cycles."""
         got = getattr(self, "_gen", None)
         if got is not None and got[0] == c - 1 and len(got[1]["outcome"]):
-            new = self._rows(lambda cyc, k: cyc == c)
-            rows = {k: np.concatenate([got[1][k], v]) for k, v in new.items()}
+            new = self._rows(lambda cyc, k: cyc == c, shared=True)
+            rows = got[1] if not len(new["outcome"]) else {
+                k: (got[1][k].concatenate(v) if isinstance(v, SharedVolumes) else np.concatenate([got[1][k], v]))
+                for k, v in new.items()}
         else:
-            rows = self._rows(lambda cyc, k: 1 <= cyc <= c)
+            rows = self._rows(lambda cyc, k: 1 <= cyc <= c, shared=True)
         self._gen = (c, rows)
         return rows
 
@@ -409,7 +417,7 @@ class CoTrainRun:
             self.store.append(objs, lefts, rights, out, kind="generated",
                               names=[self.names[i] for i in pick], keys=[key], cycle=c)
         gen = self._generated(c)
-        new = {k: v[gen["cycle"] == c] for k, v in gen.items()}
+        new = {k: v[gen["cycle"] == c] for k, v in gen.items() if k != "object"}
         g = self.cfg.geometry
         feasible = np.array([is_feasible(a, g) and is_feasible(b, g) for a, b in zip(new["left"], new["right"])])
         sim_seconds = time.perf_counter() - start

@@ -34,7 +34,8 @@ Simulate = Callable[[np.ndarray, np.ndarray, np.ndarray, str], np.ndarray]
 class RunData:
     """objects: [N, R, R, R] float32 volumes of the whole set; names: theirs; train_idx, test_idx:
     the split as indices; eval_idx: the held-out objects the generator is evaluated on; store: the
-    run's grasp store; pre: the pretraining rows (``read_rows`` of cycle -1); imprint_objects:
+    run's grasp store; pre: the pretraining rows (``read_rows`` of cycle -1, their object volumes
+    ``SharedVolumes``); imprint_objects:
     [M, R, R, R] float16 volumes of the objects whose imprints only the generator's pretraining
     sees (``TrainConfig.imprint_objects``; M = 0 without them)."""
 
@@ -48,19 +49,70 @@ class RunData:
     imprint_objects: np.ndarray
 
 
-def read_rows(store: GraspStore, select: Callable[[int, str], bool]) -> dict[str, np.ndarray]:
-    """Store rows whose (cycle, kind) pass ``select``, as ``ROW_FIELDS`` arrays; volumes float16."""
+class SharedVolumes:
+    """The object volumes of many rows as one table of the run's objects and a row -> object index:
+    the K designs of one object share its volume instead of holding K copies (a third of a row's
+    memory; the workstation config's ~87k rows would otherwise hold ~10 GiB of copies).
+
+    Indexing with rows (integers, a slice, a mask) gives the volumes as an array, as indexing the
+    full [N, R, R, R] array would; ``len`` and ``shape`` are the full array's."""
+
+    def __init__(self, table: np.ndarray, index: np.ndarray):
+        self.table, self.index = table, np.asarray(index, np.int32)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def __getitem__(self, rows) -> np.ndarray:
+        return self.table[self.index[rows]]
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (len(self.index), *self.table.shape[1:])
+
+    @property
+    def dtype(self):
+        return self.table.dtype
+
+    def concatenate(self, other: "SharedVolumes") -> "SharedVolumes":
+        if other.table is not self.table:
+            raise ValueError("SharedVolumes of different tables cannot be joined")
+        return SharedVolumes(self.table, np.concatenate([self.index, other.index]))
+
+
+def read_rows(store: GraspStore, select: Callable[[int, str], bool],
+              objects: tuple[np.ndarray, list[str]] | None = None) -> dict[str, np.ndarray]:
+    """Store rows whose (cycle, kind) pass ``select``, as ``ROW_FIELDS`` arrays; volumes float16.
+
+    objects: (float16 volumes [N, R, R, R], their N names), the run's objects as the store holds
+    them: rows' object volumes are then not read but shared from it (``SharedVolumes``); the first
+    row read is checked against it, and a row naming no object in it is an error."""
     meta = store.read(("cycle", "kind"))
     keep = np.flatnonzero([select(int(c), str(k)) for c, k in zip(meta["cycle"], meta["kind"])])
     if keep.size == 0:
         return {f: np.zeros((0,), np.float32) for f in ROW_FIELDS}
     # rows of one selection are contiguous chunks in practice; read the covering range once
-    got = store.read(ROW_FIELDS, start=int(keep[0]), stop=int(keep[-1]) + 1)
+    start, stop = int(keep[0]), int(keep[-1]) + 1
+    fields = ROW_FIELDS if objects is None else tuple(f for f in ROW_FIELDS if f != "object")
+    got = store.read(fields, start=start, stop=stop)
     local = keep - keep[0]
     out = {k: v[local] for k, v in got.items()}
     for k in ("object", "left", "right"):
-        out[k] = out[k].astype(np.float16)  # exact: the store holds float16
-    return out
+        if k in out:
+            out[k] = out[k].astype(np.float16)  # exact: the store holds float16
+    if objects is not None:
+        table, names = objects
+        where = {str(n): i for i, n in enumerate(names)}
+        unknown = sorted({str(n) for n in out["name"]} - set(where))
+        if unknown:
+            raise F2FError(f"{store.root}: rows of objects {unknown[:3]} that are not the run's")
+        shared = SharedVolumes(table, [where[str(n)] for n in out["name"]])
+        first = store.read(("object",), start=start, stop=start + 1)["object"].astype(np.float16)
+        if not np.array_equal(first, shared[:1]):
+            raise F2FError(f"{store.root}: the stored volume of {out['name'][0]} is not the run's object "
+                           "of that name (another object set?)")
+        out["object"] = shared
+    return {k: out[k] for k in ROW_FIELDS}
 
 
 def prepare_run_data(run_dir: Path, cfg: Config, source: str, simulate: Simulate, *,
@@ -92,7 +144,8 @@ def prepare_run_data(run_dir: Path, cfg: Config, source: str, simulate: Simulate
                    eval_idx=test_idx[: t.eval_objects], store=store, pre={}, imprint_objects=extra)
     simulate_baselines(data, cfg, simulate)
     simulate_fmf_baseline(data, cfg, simulate)
-    data.pre = read_rows(store, lambda c, k: c == -1)
+    # the pretraining rows' objects are the training objects: shared, not one copy per pair
+    data.pre = read_rows(store, lambda c, k: c == -1, objects=(tsdfs.astype(np.float16), names))
     return data
 
 
