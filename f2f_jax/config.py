@@ -245,6 +245,10 @@ class TrainConfig:
     # fields of rising size, ``dataset.perturbed_pairs``): one object's designs that differ a
     # little, so the fitness net sees what separates its good fingers from its bad
     perturbed_pairs: int = 0
+    # Their fields' largest peak, a share of the TSDF range (the k-th of K pairs gets k / K of it):
+    # at 0.3, 5 of 16 builtin objects' imprint + 6 perturbed pairs differ in any trial; at 0.6, 8
+    # (benchmarks/RESULTS.md, session 26)
+    perturbed_peak: float = 0.3
     # More objects for the generator's pretraining alone: the imprint pairs of this many built-in
     # objects beyond the run's own (indices n_objects.. of the seed's stream: never one of the
     # run's objects, nor one of ``evaluate.py --fresh``'s, which come from another seed) join the

@@ -24,7 +24,7 @@ from f2f_jax.sim import ray_executor
 
 RECORD = "dataset.json"  # the settings a dataset directory's rows were made with
 FLAGS = {"config": "--config", "seed": "--seed", "sim_preset": "--sim-preset", "cut_pairs": "--cut-pairs",
-         "perturbed_pairs": "--perturbed-pairs", "backend": "--backend"}
+         "perturbed_pairs": "--perturbed-pairs", "perturbed_peak": "--perturbed-peak", "backend": "--backend"}
 
 
 def check_record(out: Path, record: dict) -> None:
@@ -60,6 +60,9 @@ def main(argv=None) -> int:
     p.add_argument("--perturbed-pairs", type=int, default=None,
                    help="perturbed imprint pairs per object (one object's designs that differ a little; "
                         "default: the config's train.perturbed_pairs)")
+    p.add_argument("--perturbed-peak", type=float, default=None,
+                   help="the largest perturbation, a share of the TSDF range in (0, 1]; the k-th of K "
+                        "pairs gets k / K of it (default: the config's train.perturbed_peak)")
     p.add_argument("--batch", type=int, default=None,
                    help="objects per stored chunk (default 8; with --executor ray, 2 per cluster "
                         "CPU, at least 8, so every CPU has work)")
@@ -72,6 +75,8 @@ def main(argv=None) -> int:
         p.error("--batch must be positive")
     if args.cut_pairs < 0 or (args.perturbed_pairs is not None and args.perturbed_pairs < 0):
         p.error("--cut-pairs and --perturbed-pairs must be >= 0")
+    if args.perturbed_peak is not None and not 0.0 < args.perturbed_peak <= 1.0:
+        p.error(f"--perturbed-peak must be in (0, 1] (a share of the TSDF range), got {args.perturbed_peak}")
     if args.executor == "ray" and args.backend != "mujoco":
         p.error("--executor ray runs the mujoco backend")
     try:
@@ -83,8 +88,10 @@ def main(argv=None) -> int:
         cfg = config.with_sim_preset(cfg, args.sim_preset)
     out = Path(args.out)
     n_perturbed = cfg.train.perturbed_pairs if args.perturbed_pairs is None else args.perturbed_pairs
+    peak = cfg.train.perturbed_peak if args.perturbed_peak is None else args.perturbed_peak
     record = {"config": args.config, "seed": args.seed, "sim_preset": config.sim_preset_name(cfg),
-              "cut_pairs": args.cut_pairs, "perturbed_pairs": n_perturbed, "backend": args.backend}
+              "cut_pairs": args.cut_pairs, "perturbed_pairs": n_perturbed, "perturbed_peak": peak,
+              "backend": args.backend}
     try:
         check_record(out, record)
     except F2FError as exc:
@@ -95,7 +102,8 @@ def main(argv=None) -> int:
     with atomic_path(out / RECORD) as tmp:
         tmp.write_text(json.dumps(record, indent=1))
     summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=args.batch,
-                                  n_cut=args.cut_pairs, n_perturbed=n_perturbed, backend=args.backend,
+                                  n_cut=args.cut_pairs, n_perturbed=n_perturbed, perturb_peak=peak,
+                                  backend=args.backend,
                                   executor=executor)
     print(json.dumps({"rows": len(store), "this_run": summary}, indent=1))
     return 0
