@@ -317,6 +317,9 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     res = json.loads((out / "results.json").read_text())
     assert res["objects"] == 2 and res["names"][1].startswith("fresh/")
     assert res["fitness_ranking"]["candidates"] == 2 and res["fitness_ranking"]["objects"] == 2
+    judged = res["fitness_ranking"]["judges"]["cycle 0"]  # the extra's fitness net, same candidates
+    assert judged["trials_mean"] == res["fitness_ranking"]["trials_mean"]
+    assert judged["spearman_gain"]["objects"] <= 2
     # the design pool (the generator's candidate and the imprints, verified) passes, object by
     # object, at least the trials the Imprint row's fingers pass: they are in its pool
     outcomes = res["table1"]["outcomes"]
@@ -332,6 +335,7 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     assert gain["ci_low"] <= gain["diff"] <= gain["ci_high"]
     printed = capsys.readouterr().out
     assert "paired over objects" in printed and "Design pool: where the verified picks" in printed
+    assert "cycle 0's fitness net on the same candidates" in printed
     # the seed table reads what evaluate.py wrote: one run given twice has no spread
     from f2f_jax.cli import seed_table
     assert seed_table.main([str(out), str(out / "results.json"), "--labels", "a,b",

@@ -292,6 +292,26 @@ def test_ranking_stats_tell_a_fitness_net_that_ranks_from_one_that_ranks_backwar
         E.ranking_stats(good[..., :3], sim)
 
 
+def test_paired_spearman_sees_one_fitness_net_rank_better_than_another():
+    """Two fitness nets on the same candidates: the one that ranks like the simulator beats one
+    that ranks at random, with an interval above zero; a net against itself gains exactly 0."""
+    rng = np.random.default_rng(2)
+    sim = (rng.random((30, 6, 11)) < rng.random((30, 6, 1))).astype(np.uint8)
+    good = np.repeat((sim.sum(-1) / 11.0)[..., None], 11, -1)
+    noise = rng.random((30, 6, 11))
+    rho = E.within_object_spearman(good, sim)
+    ranked = ~np.isnan(rho)
+    assert ranked.sum() == E.ranking_stats(good, sim)["objects_ranked"] and np.allclose(rho[ranked], 1.0)
+    g = E.paired_spearman(good, noise, sim)
+    assert g["objects"] == ranked.sum() and g["ci_low"] > 0.5 and g["worse"] == 0
+    assert g["ci_low"] <= g["diff"] <= g["ci_high"]
+    assert E.paired_spearman(noise, good, sim)["ci_high"] < 0
+    same = E.paired_spearman(noise, noise, sim)
+    assert same["diff"] == same["ci_low"] == same["ci_high"] == 0 and same["better"] == same["worse"] == 0
+    flat = np.repeat(sim[:, :1], 6, 1)  # nothing to rank on any object
+    assert E.paired_spearman(good, noise, flat)["objects"] == 0
+
+
 def test_paired_gain_sees_a_real_gain_and_no_gain_where_there_is_none():
     rng = np.random.default_rng(1)
     before = (rng.random((40, 4, 11)) < 0.5).astype(np.uint8)
@@ -323,3 +343,21 @@ def test_fitness_ranking_simulates_every_candidate_of_a_run(objects, hulls, tiny
     assert max(r["trials_first"], r["trials_picked"], r["trials_mean"]) <= r["trials_best"] <= 11
     with pytest.raises(ValueError, match="candidates"):
         E.fitness_ranking(models, objects[:1], tiny, candidates=1)
+    # other nets' fitness nets judge the same candidates: the designs come out the same without
+    # simulating, and the run's own net judged again is the run's figure to the digit
+    lefts, rights, feasible = E.candidate_designs(models, objects[:2], tiny, candidates=2)
+    again = E.candidate_designs(models, objects[:2], tiny, candidates=2)
+    for a, b in zip((lefts, rights, feasible), again):
+        np.testing.assert_array_equal(a, b)
+    simulated = np.zeros((2, 2, 11), np.uint8)
+    simulated[:, 1] = 1  # the second candidate of each object passes every trial
+    other = init_trained_nets(tiny, seed=1)
+    rep = E.ranking_report(models, objects[:2], lefts, rights, feasible, simulated,
+                           judges={"itself": models, "other": other})
+    assert set(rep["judges"]) == {"itself", "other"}
+    mine = {k: v for k, v in rep.items() if k != "judges"}
+    assert {k: v for k, v in rep["judges"]["itself"].items() if k != "spearman_gain"} == {
+        k: v for k, v in mine.items() if k not in ("objects", "candidates", "feasible")}
+    g = rep["judges"]["itself"]["spearman_gain"]
+    assert g["objects"] == mine["objects_ranked"] > 0 and g["diff"] == 0
+    assert rep["judges"]["other"]["spearman_gain"]["objects"] <= 2

@@ -19,6 +19,12 @@ own row.
 --neighbourhood K compares the generators (the run's and the extras'): K candidates per object
 each, all simulated, and the run's gain over each extra paired over objects with a bootstrap
 interval; --fresh N adds N never-seen built-in objects to the run's held-out ones.
+--fitness-ranking K simulates K candidates per object of the run's generator and asks whether its
+fitness net ranks them as the simulator does; every --extra's fitness net scores the same
+candidates, and the run's within-object Spearman minus each one's is printed paired over objects:
+
+    python experiments/evaluate.py --run-dir runs/a --extra "b=runs/b" --fitness-ranking 16 \
+        --fresh 48 --seed 7 --tables 1 --no-randemb   # does run a's fitness net rank better than b's?
 Writes table1.{md,csv,png}, table2.{md,csv,png} and results.json into --out (default DIR/eval,
 or runs/eval without a run) and prints the markdown.
 
@@ -94,7 +100,8 @@ COUNT_FLAGS = (
                              "generator's K candidates) and 'Design pool (K + imprints, verify)' (the "
                              "same plus the imprint pair and its variants: design()'s default)"),
     ("--fitness-ranking", "K", "also measure how well the fitness net ranks K candidate designs per "
-                               "object (all simulated): within-object Spearman, its pick vs the best"),
+                               "object (all simulated): within-object Spearman, its pick vs the best; "
+                               "every --extra's fitness net scores the same candidates, paired"),
     ("--neighbourhood", "K", "simulate K candidates per object (own design + K-1 latent perturbations) "
                              "of the run and of every --extra; print each one's trials passed and the "
                              "run's paired gain over each --extra with a 95%% bootstrap interval"),
@@ -203,6 +210,7 @@ class _Rows:
         self.pool_origins = []  # FingerPair.origin of the design pool's picks, one per object
         self.pool_name, self.store = None, None  # the pool row; the StepStore (set in main)
         self.ranked, self.generators = None, {}
+        self.judges = {}  # --extra nets whose fitness nets also score --fitness-ranking's candidates
         # {row: what makes its fingers}: with the objects and config, names its saved steps
         self.recipes: dict[str, str] = {}
 
@@ -296,6 +304,8 @@ def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
         rows.recipes[name] = f"generator, {_nets_recipe(nets_x)}"
         if rows.generators:
             rows.generators[name] = nets_x
+        if rows.ranked is not None:
+            rows.judges[name] = nets_x
 
 
 def _pool_note(rows: _Rows) -> None:
@@ -348,25 +358,37 @@ def _table_results(args, designers, rows: _Rows, objs, hulls, cfg, notes, tables
     return results, printed
 
 
-def _fitness_ranking(args, ranked, objs, hulls, cfg, store) -> tuple[dict, str]:
-    row, nets = ranked
-    step = f"fitness ranking {args.fitness_ranking}"
-    got = store.load(step, row)
-    if got is not None:
-        rk = json.loads(str(got["ranking"]))
+def _fitness_ranking(args, rows: _Rows, objs, hulls, cfg) -> tuple[dict, str]:
+    """--fitness-ranking K: the run's K candidates per object, all simulated (kept in the step
+    store), scored by the run's fitness net and by every --extra's on the same candidates."""
+    row, nets = rows.ranked
+    k = args.fitness_ranking
+    step = f"fitness ranking {k}"
+    got = rows.store.load(step, row)
+    if got is not None and "outcomes" in got:  # the designs are made again (deterministic), not simulated
+        lefts, rights, feasible = E.candidate_designs(nets, objs, cfg, candidates=k, key=args.seed)
+        simulated = got["outcomes"]
     else:
-        _say(f"fitness ranking: {args.fitness_ranking} candidates per object, all simulated")
-        rk = E.fitness_ranking(nets, objs, cfg, candidates=args.fitness_ranking, key=args.seed,
-                               backend=args.backend, object_hulls=hulls, progress=not args.quiet,
-                               executor=args.executor)
-        store.save(step, row, ranking=np.array(json.dumps(rk)))
-    text = (f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "
-            f"within-object Spearman {rk['spearman']:.2f} ({rk['objects_ranked']} objects with "
-            f"differing candidates), grasp AUC {rk['grasp_auc']:.2f}; trials passed of 11: "
-            f"generator's own {rk['trials_first']:.2f}, average candidate {rk['trials_mean']:.2f}, "
-            f"fitness net's pick {rk['trials_picked']:.2f}, best {rk['trials_best']:.2f}, "
-            f"worst {rk['trials_worst']:.2f}")
-    return rk, text
+        _say(f"fitness ranking: {k} candidates per object, all simulated")
+        lefts, rights, feasible, simulated = E.candidate_outcomes(
+            nets, objs, cfg, candidates=k, key=args.seed, backend=args.backend, object_hulls=hulls,
+            progress=not args.quiet, executor=args.executor)
+        rows.store.save(step, row, outcomes=simulated)
+    rk = E.ranking_report(nets, objs, lefts, rights, feasible, simulated, judges=rows.judges)
+    lines = [f"Fitness net ranking ({rk['candidates']} candidates x {rk['objects']} objects): "
+             f"within-object Spearman {rk['spearman']:.2f} ({rk['objects_ranked']} objects with "
+             f"differing candidates), grasp AUC {rk['grasp_auc']:.2f}; trials passed of 11: "
+             f"generator's own {rk['trials_first']:.2f}, average candidate {rk['trials_mean']:.2f}, "
+             f"fitness net's pick {rk['trials_picked']:.2f}, best {rk['trials_best']:.2f}, "
+             f"worst {rk['trials_worst']:.2f}"]
+    for name, j in rk.get("judges", {}).items():
+        g = j["spearman_gain"]
+        lines.append(f"  {name}'s fitness net on the same candidates: Spearman {j['spearman']:.2f}, grasp "
+                     f"AUC {j['grasp_auc']:.2f}, its pick {j['trials_picked']:.2f} trials; {row} minus "
+                     f"{name}, Spearman paired over {g['objects']} objects: {g['diff']:+.3f} "
+                     f"[{g['ci_low']:+.3f}, {g['ci_high']:+.3f}] (95% bootstrap; better / worse "
+                     f"{g['better']} / {g['worse']})")
+    return rk, "\n".join(lines)
 
 
 def _neighbourhood(args, generators: dict, objs, hulls, cfg, store) -> tuple[dict, str]:
@@ -452,7 +474,7 @@ def main(argv=None) -> int:
     made, printed = _table_results(args, designers, rows, objs, hulls, cfg, notes, tables, out_dir)
     results.update(made)
     if rows.ranked is not None:
-        results["fitness_ranking"], text = _fitness_ranking(args, rows.ranked, objs, hulls, cfg, rows.store)
+        results["fitness_ranking"], text = _fitness_ranking(args, rows, objs, hulls, cfg)
         printed.append(text)
     if rows.generators:
         results["neighbourhood"], text = _neighbourhood(args, rows.generators, objs, hulls, cfg, rows.store)

@@ -37,20 +37,24 @@ from f2f_jax.tables.paper import (
 )
 from f2f_jax.tables.seeds import SeedTable, combine_results, load_results, merge_results
 from f2f_jax.tables.stats import (
+    candidate_designs,
     candidate_outcomes,
     fitness_ranking,
     neighbourhood_stats,
     paired_gain,
+    paired_spearman,
+    ranking_report,
     ranking_stats,
+    within_object_spearman,
 )
 from f2f_jax.tables.table import Table, position_offsets, prepare_objects, table1, table1_values, table2
 
 __all__ = [
     "OBJECTIVE_ROWS", "PAPER_OBJECTS", "PAPER_TABLE1", "PAPER_TABLE2", "ROBUSTNESS", "STABILITY",
     "TABLE1_COLUMNS", "TABLE2_COLUMNS", "TABLE2_CONDITIONS", "Condition", "Design", "Designer",
-    "SeedTable", "Table", "candidate_outcomes", "combine_results", "fitness_ranking",
+    "SeedTable", "Table", "candidate_designs", "candidate_outcomes", "combine_results", "fitness_ranking",
     "imprint_designer", "load_results", "make_designs", "merge_results", "neighbourhood_stats", "nets_designer",
-    "objects_array", "pair_designer", "paired_gain", "position_offsets", "prepare_objects",
-    "random_embedding_designer", "ranking_stats", "table1", "table1_values", "table2", "wsg50_designer",
-    "wsg_fmf_designer",
+    "objects_array", "pair_designer", "paired_gain", "paired_spearman", "position_offsets", "prepare_objects",
+    "random_embedding_designer", "ranking_report", "ranking_stats", "table1", "table1_values", "table2", "wsg50_designer",
+    "within_object_spearman", "wsg_fmf_designer",
 ]

@@ -14,6 +14,20 @@ from f2f_jax.nets.inference import LATENT_NOISE, predict, propose
 from f2f_jax.tables.designers import objects_array
 
 
+def within_object_spearman(predicted: np.ndarray, simulated: np.ndarray) -> np.ndarray:
+    """Per object, the Spearman rank correlation of its candidates' scores (mean predicted
+    probability) with the trials they passed: predicted, simulated [N, K, 11] -> [N], nan for an
+    object whose candidates all pass the same trials or all score the same (nothing to rank)."""
+    from scipy.stats import rankdata
+
+    score, value = np.asarray(predicted, np.float64).mean(-1), np.asarray(simulated, np.float64).sum(-1)
+    rho = np.full(len(score), np.nan)
+    for i, (sc, va) in enumerate(zip(score, value)):
+        if np.ptp(va) > 0 and np.ptp(sc) > 0:
+            rho[i] = np.corrcoef(rankdata(sc), rankdata(va))[0, 1]
+    return rho
+
+
 def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, float]:
     """How well predicted success ranks several candidate designs of the same objects.
 
@@ -40,11 +54,8 @@ def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, flo
     if p.shape != s.shape or p.ndim != 3:
         raise ValueError(f"predicted {p.shape} and simulated {s.shape}: expected two [N, K, 11] arrays")
     score, value = p.mean(-1), s.sum(-1)
-    rhos = []
-    for sc, va in zip(score, value):
-        if np.ptp(va) == 0 or np.ptp(sc) == 0:
-            continue
-        rhos.append(np.corrcoef(rankdata(sc), rankdata(va))[0, 1])
+    rhos = within_object_spearman(p, s)
+    rhos = rhos[~np.isnan(rhos)]
     rows = np.arange(len(score))
     grasp, prob = s[..., 0].ravel(), p[..., 0].ravel()
     pos, neg = prob[grasp == 1], prob[grasp == 0]
@@ -54,7 +65,7 @@ def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, flo
     else:
         auc = float("nan")
     return {
-        "spearman": float(np.mean(rhos)) if rhos else float("nan"),
+        "spearman": float(np.mean(rhos)) if len(rhos) else float("nan"),
         "objects_ranked": len(rhos),
         "trials_first": float(value[:, 0].mean()),
         "trials_mean": float(value.mean()),
@@ -63,6 +74,19 @@ def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, flo
         "trials_worst": float(value.min(1).mean()),
         "grasp_auc": float(auc),
     }
+
+
+def candidate_designs(nets, objects, cfg: Config | None = None, *, candidates: int = 8,
+                      noise: float | None = None, key=0):
+    """``candidate_outcomes``' designs without simulating them (the same for the same nets, key
+    and noise): lefts, rights [N, K, 40, 40, 40] post-processed, feasible [N, K]."""
+    if candidates < 1:
+        raise ValueError(f"candidates must be >= 1, got {candidates}")
+    cfg = cfg or nets.config
+    objs = objects_array(objects, cfg.geometry.resolution)
+    lefts, rights = propose(nets, objs, key, candidates, LATENT_NOISE if noise is None else noise)
+    feasible = postprocess(lefts, rights, cfg.geometry)
+    return lefts, rights, feasible
 
 
 def candidate_outcomes(nets, objects, cfg: Config | None = None, *, candidates: int = 8,
@@ -78,12 +102,9 @@ def candidate_outcomes(nets, objects, cfg: Config | None = None, *, candidates: 
     Returns (lefts, rights [N, K, 40, 40, 40], feasible [N, K], simulated [N, K, T] uint8; T = 11
     for the whole protocol, 1 for a ``grasp_only`` config).
     """
-    if candidates < 1:
-        raise ValueError(f"candidates must be >= 1, got {candidates}")
     cfg = cfg or nets.config
     objs = objects_array(objects, cfg.geometry.resolution)
-    lefts, rights = propose(nets, objs, key, candidates, LATENT_NOISE if noise is None else noise)
-    feasible = postprocess(lefts, rights, cfg.geometry)
+    lefts, rights, feasible = candidate_designs(nets, objs, cfg, candidates=candidates, noise=noise, key=key)
     simulated = simulate_candidates(dataclasses.replace(nets, config=cfg), objs, lefts, rights,
                                     feasible, backend, progress, object_hulls, executor=executor)
     return lefts, rights, feasible, simulated
@@ -92,13 +113,14 @@ def candidate_outcomes(nets, objects, cfg: Config | None = None, *, candidates: 
 def fitness_ranking(nets, objects, cfg: Config | None = None, *, candidates: int = 16,
                     noise: float | None = None, key=0, backend: str = "mujoco",
                     object_hulls=None, progress: bool | None = None,
-                    executor: str = "threads") -> dict[str, float]:
+                    executor: str = "threads", judges=None) -> dict:
     """``ranking_stats`` of a trained run's fitness net on ``candidates`` designs per object.
 
     The candidates are ``candidate_outcomes``' (the generator's own output and K - 1 latent
     perturbations), all simulated and scored by the fitness net.  This is the measurement behind
     the co-training's premise: a generator that climbs the fitness net can only improve on what
-    the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object.
+    the net ranks right.  objects: [N, 40, 40, 40]; object_hulls: one per object; judges: other
+    runs' nets whose fitness nets score the same candidates (``ranking_report``).
     """
     if candidates < 2:
         raise ValueError(f"candidates must be >= 2 to rank anything, got {candidates}")
@@ -107,11 +129,46 @@ def fitness_ranking(nets, objects, cfg: Config | None = None, *, candidates: int
     lefts, rights, feasible, simulated = candidate_outcomes(
         nets, objs, cfg, candidates=candidates, noise=noise, key=key, backend=backend,
         object_hulls=object_hulls, progress=progress, executor=executor)
+    return ranking_report(nets, objs, lefts, rights, feasible, simulated, judges=judges)
+
+
+def ranking_report(nets, objects, lefts, rights, feasible, simulated, *, judges=None) -> dict:
+    """``ranking_stats`` of ``nets``' fitness net on simulated candidates (``candidate_outcomes``'
+    lefts, rights [N, K, R, R, R], feasible [N, K], simulated [N, K, 11]), with ``objects``,
+    ``candidates`` and ``feasible`` (the feasible share).  judges: {name: TrainedNets} whose
+    fitness nets score the same candidates: under "judges", each one's ``ranking_stats`` and
+    ``spearman_gain`` (``nets``' within-object Spearman minus the judge's, paired over objects:
+    ``paired_spearman``)."""
+    objs = np.asarray(objects, np.float32)
     predicted = predict(nets, objs, lefts, rights)
     n, k = feasible.shape
     out = ranking_stats(predicted, simulated)
     out.update(objects=n, candidates=k, feasible=float(feasible.mean()))
+    if judges:
+        out["judges"] = {}
+        for name, judge in judges.items():
+            theirs = predict(judge, objs, lefts, rights)
+            out["judges"][name] = {**ranking_stats(theirs, simulated),
+                                   "spearman_gain": paired_spearman(predicted, theirs, simulated)}
     return out
+
+
+def paired_spearman(predicted_a: np.ndarray, predicted_b: np.ndarray, simulated: np.ndarray, *,
+                    n_boot: int = 10000, seed: int = 0) -> dict[str, float]:
+    """How much better fitness net a ranks one object's candidates than fitness net b, on the same
+    simulated candidates ([N, K, 11] each): the within-object Spearman of a minus b's, averaged
+    over the objects both can rank (``within_object_spearman``), with a 95% percentile bootstrap
+    interval over those objects; ``objects`` counts them, ``better`` / ``worse`` those where a
+    ranks better / worse.  All nan (objects 0) when no object can be ranked by both."""
+    d = within_object_spearman(predicted_a, simulated) - within_object_spearman(predicted_b, simulated)
+    d = d[~np.isnan(d)]
+    if not len(d):
+        return {"diff": float("nan"), "ci_low": float("nan"), "ci_high": float("nan"), "objects": 0,
+                "better": 0, "worse": 0}
+    boot = d[np.random.default_rng(seed).integers(0, len(d), (n_boot, len(d)))].mean(1)
+    lo, hi = np.percentile(boot, [2.5, 97.5])
+    return {"diff": float(d.mean()), "ci_low": float(lo), "ci_high": float(hi), "objects": int(len(d)),
+            "better": int((d > 0).sum()), "worse": int((d < 0).sum())}
 
 
 # --------------------------------------------------------------------------------------------
