@@ -355,3 +355,8 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     for part in ("table1", "neighbourhood", "fitness_ranking"):
         assert again[part] == res[part], part
     assert "Design pool: where the verified picks" in captured.out
+    # --checkpoint RUN/pretrained: the pretrained nets (ImpGN) on the same held-out objects
+    assert cli.main(["--run-dir", str(run_dir), "--checkpoint", str(run_dir / "pretrained"), "--objects", "1",
+                     "--tables", "1", "--no-randemb", "--quiet", "--out", str(tmp_path / "pre")]) == 0
+    pre = json.loads((tmp_path / "pre" / "results.json").read_text())["table1"]["outcomes"]
+    assert "ImpGN" in pre and "Fit2Form" not in pre

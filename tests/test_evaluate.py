@@ -265,12 +265,15 @@ def test_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys):
     assert cli.main(["--run-dir", str(tmp_path)]) == 2  # a directory without an object set
     assert cli.main(["--neighbourhood", "0"]) == 2
     assert cli.main(["--fresh", "4"]) == 2  # new objects are added to a run's held-out ones
+    assert cli.main(["--checkpoint", str(tmp_path)]) == 2  # whose held-out objects?
+    assert cli.main(["--run-dir", str(tmp_path), "--checkpoint", str(tmp_path)]) == 2  # no checkpoints/
     (tmp_path / "objects").mkdir()
     (tmp_path / "objects" / "source.json").write_text('{"source": "builtin", "n": 8, "seed": 3}')
     assert cli.main(["--run-dir", str(tmp_path), "--fresh", "4", "--seed", "3"]) == 2
     err = capsys.readouterr().err
     assert "--tables '3'" in err and "NAME=RUN_DIR" in err and "no object set" in err
-    assert "would not be new" in err
+    assert "would not be new" in err and "--checkpoint DIR needs --run-dir" in err
+    assert "no checkpoints/ directory" in err
 
 
 def test_ranking_stats_tell_a_fitness_net_that_ranks_from_one_that_ranks_backwards():

@@ -19,6 +19,8 @@ own row.
 --neighbourhood K compares the generators (the run's and the extras'): K candidates per object
 each, all simulated, and the run's gain over each extra paired over objects with a bootstrap
 interval; --fresh N adds N never-seen built-in objects to the run's held-out ones.
+--checkpoint DIR takes the nets from DIR/checkpoints instead of the run's newest: RUN_DIR/pretrained
+scores the run's pretrained generator and fitness net on its held-out objects.
 --fitness-ranking K simulates K candidates per object of the run's generator and asks whether its
 fitness net ranks them as the simulator does; every --extra's fitness net scores the same
 candidates, and the run's within-object Spearman minus each one's is printed paired over objects:
@@ -113,6 +115,10 @@ COUNT_FLAGS = (
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run-dir", default=None, help="a co-training run directory (objects + checkpoints)")
+    p.add_argument("--checkpoint", default=None, metavar="DIR",
+                   help="with --run-dir: the nets of DIR/checkpoints instead of the run's newest, e.g. "
+                        "RUN_DIR/pretrained (the end of its pretraining: its ImpGN and pretrained "
+                        "fitness net) on the run's held-out objects")
     p.add_argument("--extra", action="append", default=[], metavar="NAME=RUN_DIR",
                    help="another run's checkpoint as a Table 1 row (repeatable), e.g. 'Fit2Form GS=runs/gs'")
     p.add_argument("--objects", type=int, default=None,
@@ -159,6 +165,10 @@ def _check(args) -> tuple[str | None, list[int], list[tuple[str, Path]]]:
         (args.neighbourhood is not None and args.neighbourhood < 1, "--neighbourhood K needs K >= 1"),
         (args.fresh is not None and (args.fresh < 1 or not args.run_dir),
          "--fresh N needs N >= 1 and --run-dir"),
+        (args.checkpoint is not None and not args.run_dir,
+         "--checkpoint DIR needs --run-dir (whose held-out objects it is scored on)"),
+        (args.checkpoint is not None and not (Path(args.checkpoint).expanduser() / "checkpoints").is_dir(),
+         f"--checkpoint {args.checkpoint}: no checkpoints/ directory in it (e.g. RUN_DIR/pretrained)"),
     ]
     for bad, message in checks:
         if bad:
@@ -269,7 +279,7 @@ def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
     """The run's checkpoint (Fit2Form, RandEmb+FN, search rows) and every --extra's."""
     nets = None
     if run_dir is not None:
-        nets, why = _load_trained_nets(run_dir)
+        nets, why = _load_trained_nets(Path(args.checkpoint).expanduser() if args.checkpoint else run_dir)
         if nets is None:
             _say(f"no usable checkpoint in {run_dir} ({why}): running the baseline rows only")
     if nets is not None:
