@@ -279,9 +279,10 @@ def _model_rows(rows: _Rows, args, run_dir: Path | None, extras) -> None:
     """The run's checkpoint (Fit2Form, RandEmb+FN, search rows) and every --extra's."""
     nets = None
     if run_dir is not None:
-        nets, why = _load_trained_nets(Path(args.checkpoint).expanduser() if args.checkpoint else run_dir)
+        source = Path(args.checkpoint).expanduser() if args.checkpoint else run_dir
+        nets, why = _load_trained_nets(source)
         if nets is None:
-            _say(f"no usable checkpoint in {run_dir} ({why}): running the baseline rows only")
+            _say(f"no usable checkpoint in {source} ({why}): running the baseline rows only")
     if nets is not None:
         row = E.OBJECTIVE_ROWS.get(nets.objectives, f"Fit2Form ({nets.objectives})")
         _say(f"{row}: {nets.source}")
