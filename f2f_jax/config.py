@@ -374,6 +374,12 @@ def workstation() -> Config:
 CONFIGS = {"tiny": tiny, "default": default, "paper": paper, "workstation": workstation}
 
 
+def held_out_count(n: int, test_fraction: float) -> int:
+    """How many of ``n`` objects a split holds out (``TrainConfig.test_fraction``): the share,
+    rounded, with at least one object on each side when there are two or more."""
+    return min(max(int(round(test_fraction * n)), 1), n - 1) if n >= 2 else 0
+
+
 def planned_simulations(cfg: Config, n_objects: int | None = None) -> dict[str, int]:
     """How many 11-trial evaluations a run of ``cfg`` simulates, by stage, on ``n_objects`` objects
     (default: the config's built-in ``n_objects``): the pretraining dataset (at most: cut and
@@ -382,7 +388,7 @@ def planned_simulations(cfg: Config, n_objects: int | None = None) -> dict[str, 
     cycles' designs and the two held-out evaluations of the generator; "total" sums them."""
     t = cfg.train
     n = t.n_objects if n_objects is None else n_objects
-    n_test = min(max(int(round(t.test_fraction * n)), 1), n - 1) if n >= 2 else 0
+    n_test = held_out_count(n, t.test_fraction)
     out = {"dataset": (n - n_test) * (2 + t.cut_pairs + t.perturbed_pairs), "baselines": 2 * n_test,
            "cycles": t.cycles * t.objects_per_cycle * t.cycle_candidates,
            "heldout": 2 * min(t.eval_objects, n_test)}

@@ -12,6 +12,7 @@ import json
 import os
 from pathlib import Path
 
+from f2f_jax.config import held_out_count
 from f2f_jax.fileio import atomic_path
 
 
@@ -34,7 +35,7 @@ def make_split(names, test_fraction: float = 0.2, seed: int = 0) -> dict[str, li
     if not 0.0 < test_fraction < 1.0:
         raise ValueError(f"make_split: test_fraction must be in (0, 1), got {test_fraction}")
     n = len(names)
-    n_test = min(max(int(round(test_fraction * n)), 1), n - 1) if n >= 2 else 0
+    n_test = held_out_count(n, test_fraction)
     ranked = sorted(names, key=lambda s: _rank_key(s, seed))
     return {"train": sorted(ranked[n_test:]), "test": sorted(ranked[:n_test])}
 
