@@ -121,8 +121,6 @@ def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config |
     todo = [i for i in range(len(names)) if names[i] not in done]
     if n_cut < 0 or n_perturbed < 0:
         raise ValueError(f"n_cut and n_perturbed must be >= 0, got {n_cut} and {n_perturbed}")
-    if n_perturbed and not 0.0 < perturb_peak <= 1.0:
-        raise ValueError(f"perturb_peak must be in (0, 1] (a share of the TSDF range), got {perturb_peak}")
     stats = {k: [0, 0] for k in (*KINDS, PERTURBED)}
     bar = tqdm(total=len(todo), desc="grasp dataset", unit="obj", disable=not progress)
     for start in range(0, len(todo), batch_objects):

@@ -170,6 +170,7 @@ class CoTrainRun:
                                             backend=self.backend, executor=self.executor,
                                             progress=self.progress)
         self.objects, self.names, self.store = data.objects, data.names, data.store
+        self.object_table = data.object_table  # the objects as stored: what shared rows index
         self.train_idx, self.test_idx, self.eval_idx = data.train_idx, data.test_idx, data.eval_idx
         self.pre = data.pre  # the pretraining dataset: dict of arrays, float16 volumes (as stored)
         self._log({"stage": "data", "objects": len(self.names), "train": len(self.train_idx),
@@ -182,9 +183,7 @@ class CoTrainRun:
         objects (``SharedVolumes``) rather than read, one copy per object however many rows."""
         if not shared:
             return read_rows(self.store, select)
-        if getattr(self, "_object_table", None) is None:
-            self._object_table = self.objects.astype(np.float16)  # exact: as the store holds them
-        return read_rows(self.store, select, objects=(self._object_table, self.names))
+        return read_rows(self.store, select, objects=(self.object_table, self.names))
 
     def _simulate(self, objs, lefts, rights, what: str) -> np.ndarray:
         if self.progress:

@@ -37,7 +37,8 @@ class RunData:
     run's grasp store; pre: the pretraining rows (``read_rows`` of cycle -1, their object volumes
     ``SharedVolumes``); imprint_objects:
     [M, R, R, R] float16 volumes of the objects whose imprints only the generator's pretraining
-    sees (``TrainConfig.imprint_objects``; M = 0 without them)."""
+    sees (``TrainConfig.imprint_objects``; M = 0 without them); object_table: ``objects`` in
+    float16, as the store holds them, the table every ``SharedVolumes`` of the run's rows indexes."""
 
     objects: np.ndarray
     names: list[str]
@@ -47,6 +48,7 @@ class RunData:
     store: GraspStore
     pre: dict[str, np.ndarray]
     imprint_objects: np.ndarray
+    object_table: np.ndarray
 
 
 class SharedVolumes:
@@ -142,11 +144,12 @@ def prepare_run_data(run_dir: Path, cfg: Config, source: str, simulate: Simulate
                                               t.seed, cfg.geometry, progress=progress)
         extra = extra.astype(np.float16)  # exact: kept as float16
     data = RunData(objects=tsdfs, names=names, train_idx=train_idx, test_idx=test_idx,
-                   eval_idx=test_idx[: t.eval_objects], store=store, pre={}, imprint_objects=extra)
+                   eval_idx=test_idx[: t.eval_objects], store=store, pre={}, imprint_objects=extra,
+                   object_table=tsdfs.astype(np.float16))  # exact: the store holds float16
     simulate_baselines(data, cfg, simulate)
     simulate_fmf_baseline(data, cfg, simulate)
     # the pretraining rows' objects are the training objects: shared, not one copy per pair
-    data.pre = read_rows(store, lambda c, k: c == -1, objects=(tsdfs.astype(np.float16), names))
+    data.pre = read_rows(store, lambda c, k: c == -1, objects=(data.object_table, names))
     return data
 
 
