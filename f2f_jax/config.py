@@ -237,6 +237,10 @@ class TrainConfig:
     # perturbations of it (nets.inference.LATENT_NOISE), all simulated and stored (designs of one
     # object that differ a little, for the fitness net and for anchor_target="best").
     cycle_candidates: int = 1
+    # Steps per epoch of the fitness net's refit in a cycle (None: max_steps_per_epoch, the
+    # pretraining's cap).  A cycle that simulates K times the designs needs about K times the
+    # steps for its fitness net to see each of them as often (session 28, benchmarks/RESULTS.md).
+    fn_refit_steps: int | None = None
     # --- the run's data (experiments/cotrain.py) ---
     n_objects: int = 1000  # built-in objects made when no --objects directory is given
     test_fraction: float = 0.2  # held-out share of the objects (a seeded split, kept in the run's objects/)

@@ -210,13 +210,14 @@ def test_config_round_trips_through_checkpoint_json(name):
 
 
 def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, capsys):
-    """--from-pretrained: the cycles of a GS run with the imprint anchor start from the whole run's
-    pretrained models and data, without the whole run's designs; other settings are refused."""
+    """--from-pretrained: the cycles of a GS run with the imprint anchor and a longer fitness refit
+    start from the whole run's pretrained models and data, without the whole run's designs; other
+    settings are refused."""
     from f2f_jax.cli import cotrain as cli
     src, _ = uninterrupted
     run_dir = tmp_path / "gs"
     args = ["--config", "tiny", "--quiet", "--cycles", "2", "--objectives", "GS", "--imprint-anchor", "1",
-            "--from-pretrained", str(src), "--run-dir", str(run_dir)]
+            "--set", "train.fn_refit_steps=6", "--from-pretrained", str(src), "--run-dir", str(run_dir)]
     assert cli.main(args) == 0, capsys.readouterr().err
     from f2f_jax.dataset.store import GraspStore
 
@@ -225,6 +226,9 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
     assert (rows < 0).sum() == (src_rows < 0).sum() and (rows == 1).sum() == (rows == 2).sum() == 16
     log = _log(run_dir)
     assert sum(r.get("stage") == "ae" and r.get("epoch") == 1 for r in log) == 1  # copied, not rerun
+    # cycle 2's 32 designs make 8 half-batches: 6 steps a refit epoch, where the cap is 4
+    assert {r["steps"] for r in log if r.get("stage") == "fn" and r.get("cycle") == 2} == {6}
+    assert config.tiny().train.max_steps_per_epoch == 4
     gs = [r for r in log if r.get("stage") == "gn" and r.get("cycle") == 2]
     assert gs and {"fitness_loss", "anchor"} <= gs[0].keys()
     a, b = load_trained_nets(src / "pretrained"), load_trained_nets(run_dir / "pretrained")

@@ -51,6 +51,9 @@ def test_anchor_settings_are_checked():
     bad = cfg.replace(train=cfg.train.__class__(**{**cfg.train.__dict__, "cycle_candidates": 0}))
     with pytest.raises(F2FError, match="cycle_candidates must be >= 1"):
         CoTrainRun("/nonexistent-run", bad)
+    bad = cfg.replace(train=cfg.train.__class__(**{**cfg.train.__dict__, "fn_refit_steps": 0}))
+    with pytest.raises(F2FError, match="fn_refit_steps must be >= 1"):
+        CoTrainRun("/nonexistent-run", bad)
     bad = cfg.replace(train=cfg.train.__class__(**{**cfg.train.__dict__, "imprint_objects": -1}))
     with pytest.raises(F2FError, match="imprint_objects must be >= 0"):
         CoTrainRun("/nonexistent-run", bad)

@@ -108,6 +108,8 @@ class CoTrainRun:
             raise ConfigError(f"train.anchor_target must be one of {ANCHOR_TARGETS}, got {t.anchor_target!r}")
         if t.cycle_candidates < 1:
             raise ConfigError(f"train.cycle_candidates must be >= 1, got {t.cycle_candidates}")
+        if t.fn_refit_steps is not None and t.fn_refit_steps < 1:
+            raise ConfigError(f"train.fn_refit_steps must be >= 1 or None, got {t.fn_refit_steps}")
         if t.gn_passes < 1:
             raise ConfigError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
         if t.imprint_objects < 0:
@@ -429,7 +431,7 @@ class CoTrainRun:
         step = S.fn_step(self.cfg)
         for epoch in range(1, t.max_epochs + 1 if warm and not control else 1):
             rng = self._rng("cycle", c, 1, epoch)
-            nb = self._batches(len(gen["outcome"]), half, rng)
+            nb = index_batches(len(gen["outcome"]), half, t.fn_refit_steps or t.max_steps_per_epoch, rng)
             ob = [rng.choice(len(self.pre["outcome"]), len(b)) for b in nb]
             batches = self._fn_batches(gen, self.pre, idx_batches=list(zip(nb, ob)))
             rec = self._epoch("fn", step, batches, epoch, c, desc=f"cycle {c} FN epoch {epoch}")
