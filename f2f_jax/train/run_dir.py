@@ -27,8 +27,8 @@ log = logging.getLogger(__name__)
 
 # Settings that only change the co-training cycles: runs that differ in nothing else can share one
 # pretraining (``copy_pretraining``), as the paper's ablations do.
-COTRAIN_FIELDS = ("cycles", "objectives", "imprint_anchor", "anchor_target", "cycle_candidates", "fn_refit_steps",
-                  "generator_lr", "warmup_designs",
+COTRAIN_FIELDS = ("cycles", "objectives", "imprint_anchor", "anchor_target", "cycle_candidates",
+                  "fn_refit_steps", "generator_lr", "warmup_designs",
                   "objects_per_cycle", "cotrain_batch_size", "fn_target_loss", "gn_target_loss",
                   "min_epochs", "max_epochs")
 
