@@ -227,8 +227,10 @@ class CoTrainRun:
                                               cycle, desc=desc, progress=self.progress)
         return rec
 
-    def _batches(self, n: int, batch: int, rng: np.random.Generator) -> list[np.ndarray]:
-        return index_batches(n, batch, self.cfg.train.max_steps_per_epoch, rng)
+    def _batches(self, n: int, batch: int, rng: np.random.Generator,
+                 steps: int | None = None) -> list[np.ndarray]:
+        """One epoch's index batches, at most ``steps`` of them (None: ``max_steps_per_epoch``)."""
+        return index_batches(n, batch, steps or self.cfg.train.max_steps_per_epoch, rng)
 
     # -- stages ---------------------------------------------------------------------------------
     def pretrain_ae(self) -> None:
@@ -431,7 +433,7 @@ class CoTrainRun:
         step = S.fn_step(self.cfg)
         for epoch in range(1, t.max_epochs + 1 if warm and not control else 1):
             rng = self._rng("cycle", c, 1, epoch)
-            nb = index_batches(len(gen["outcome"]), half, t.fn_refit_steps or t.max_steps_per_epoch, rng)
+            nb = self._batches(len(gen["outcome"]), half, rng, steps=t.fn_refit_steps)
             ob = [rng.choice(len(self.pre["outcome"]), len(b)) for b in nb]
             batches = self._fn_batches(gen, self.pre, idx_batches=list(zip(nb, ob)))
             rec = self._epoch("fn", step, batches, epoch, c, desc=f"cycle {c} FN epoch {epoch}")
