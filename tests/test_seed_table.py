@@ -178,3 +178,77 @@ def test_rows_evaluated_later_merge_into_their_run_by_label():
         combine_results([first, run(Imprint=gs)], ["s0", "s0"])
     with pytest.raises(ValueError, match="evaluated different objects"):
         combine_results([first, dict(later, names=names[::-1])], ["s0", "s0"])
+
+
+def _neighbourhood_run(after: np.ndarray, before: np.ndarray, names: list[str], fresh_seed: int = 7,
+                       after_name: str = "Fit2Form", before_name: str = "control") -> dict:
+    n_fresh = sum(n.startswith("fresh/") for n in names)
+    out = _results({"Imprint": _row(90)}, objects=len(names))
+    out.update(names=names, source=f"held-out objects of runs/x + {n_fresh} new built-in objects "
+                                   f"(seed {fresh_seed})",
+               neighbourhood={"outcomes": {after_name: after.tolist(), before_name: before.tolist()}})
+    return out
+
+
+def _outcomes(trials: np.ndarray, k: int = 2) -> np.ndarray:
+    """[N, k, 11] outcomes whose every candidate passes the first ``trials[i]`` trials."""
+    return (np.arange(11)[None, None, :] < np.asarray(trials)[:, None, None]).repeat(k, 1).astype(float)
+
+
+def test_paired_over_runs_pools_seeds_and_resamples_shared_fresh_objects_as_one():
+    from f2f_jax.tables.seeds import paired_markdown, paired_over_runs
+
+    names = ["builtin/0000_mug", "builtin/0001_box", "fresh/builtin/0000_tray", "fresh/builtin/0001_cup"]
+    runs = [_neighbourhood_run(_outcomes([9, 8, 10, 7]), _outcomes([8, 7, 9, 6]), names),
+            _neighbourhood_run(_outcomes([6, 8, 10, 7]), _outcomes([5, 7, 9, 6]), names),
+            _neighbourhood_run(_outcomes([6, 8, 10, 7]), _outcomes([5, 7, 9, 6]), names, fresh_seed=8)]
+    g = paired_over_runs(runs, ["s0", "s1", "s2"], "Fit2Form", "control")
+    p = g["pooled"]["trials_own"]
+    assert (p["diff"], p["ci_low"], p["ci_high"]) == (1.0, 1.0, 1.0) and p["better"] == 12
+    # held-out names repeat across seeds but are other shapes; the fresh ones of seed 7 are shared
+    assert p["objects"] == 12 and p["clusters"] == 3 * 2 + 2 + 2  # 3 x held-out, seed 7, seed 8
+    assert g["objects"] == {"s0": 4, "s1": 4, "s2": 4} and g["skipped"] == []
+    assert g["runs"]["s1"]["trials_mean"]["diff"] == 1.0
+    fresh = paired_over_runs(runs, ["s0", "s1", "s2"], "Fit2Form", "control", objects="fresh")
+    assert fresh["pooled"]["trials_own"]["objects"] == 6 and fresh["pooled"]["trials_own"]["clusters"] == 4
+    md = paired_markdown("Fit2Form", "control", g)
+    assert "| pooled | 12 (10 distinct) | +1.00 [+1.00, +1.00] (12 / 0) |" in md
+
+    # a run without one of the generators is named, and none at all is an error
+    other = _neighbourhood_run(_outcomes([9, 8, 10, 7]), _outcomes([8, 7, 9, 6]), names, before_name="ImpGN")
+    assert paired_over_runs(runs[:1] + [other], ["s0", "s9"], "Fit2Form", "control")["skipped"] == ["s9"]
+    with pytest.raises(ValueError, match="no run holds neighbourhood outcomes of both"):
+        paired_over_runs([other], ["s9"], "Fit2Form", "control")
+
+
+def test_pooled_interval_does_not_shrink_when_seeds_repeat_the_same_objects():
+    """Three runs on the same 40 fresh objects, with the same differences: the pooled interval
+    is as wide as one run's (resampling the 120 pairs one by one would narrow it by ~sqrt(3))."""
+    from f2f_jax.tables.seeds import paired_over_runs
+    from f2f_jax.tables.stats import paired_gain
+
+    rng = np.random.default_rng(3)
+    names = [f"fresh/builtin/{i:04d}_box" for i in range(40)]
+    before = rng.integers(3, 9, 40)
+    after = before + rng.integers(-2, 3, 40)
+    run = _neighbourhood_run(_outcomes(after), _outcomes(before), names)
+    one = paired_gain(_outcomes(after), _outcomes(before))["trials_own"]
+    pooled = paired_over_runs([run] * 3, ["a", "b", "c"], "Fit2Form", "control")["pooled"]["trials_own"]
+    width = lambda g: g["ci_high"] - g["ci_low"]  # noqa: E731
+    assert pooled["clusters"] == 40 and pooled["diff"] == pytest.approx(one["diff"])
+    assert width(pooled) == pytest.approx(width(one), rel=0.15)
+
+
+def test_seed_table_paired_flag(tmp_path, capsys):
+    names = ["builtin/0000_mug", "fresh/builtin/0000_tray"]
+    dirs = [_write(tmp_path / f"s{i}", _neighbourhood_run(_outcomes([9, 8]), _outcomes([8, 8]), names))
+            for i in range(2)]
+    out = tmp_path / "seeds"
+    assert cli.main([str(d) for d in dirs] + ["--paired", "Fit2Form minus control", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "Fit2Form minus control, paired over objects" in printed and "| pooled | 4 (3 distinct) |" in printed
+    assert (out / "paired_seeds.md").read_text().startswith("Fit2Form minus control")
+    assert cli.main([str(d) for d in dirs] + ["--paired", "Fit2Form minus ImpGN"]) == 1
+    assert "no run holds neighbourhood outcomes" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main([str(dirs[0]), "--paired", "Fit2Form - control"])

@@ -8,7 +8,12 @@
 Each argument is an ``experiments/evaluate.py`` output (its --out directory, default RUN_DIR/eval,
 or the results.json in it).  Rows are matched by name across runs, so name every run's ``--extra``
 rows alike.  --objects held-out or fresh recounts every row on the runs' own held-out objects or
-on the new ones of ``evaluate.py --fresh``.  Writes table1_seeds.{md,csv,png} (and table2_seeds.*
+on the new ones of ``evaluate.py --fresh``.  --paired "A minus B" (repeatable) prints generator A's
+gain over B on the candidates ``evaluate.py --neighbourhood K`` simulated for both, run by run and
+pooled over the runs (the fresh objects the runs share are resampled as one cluster each):
+
+    python experiments/seed_table.py runs/s*/eval --paired "Fit2Form minus control"
+  Writes table1_seeds.{md,csv,png} (and table2_seeds.*
 where the runs have Table 2) into --out and prints the markdown.  Reads only what evaluate.py
 wrote: nothing is simulated.
 """
@@ -19,7 +24,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from f2f_jax.tables.seeds import OBJECT_SUBSETS, combine_results, load_results
+from f2f_jax.tables.seeds import (
+    OBJECT_SUBSETS,
+    combine_results,
+    load_results,
+    paired_markdown,
+    paired_over_runs,
+)
 
 
 def main(argv=None) -> int:
@@ -33,6 +44,9 @@ def main(argv=None) -> int:
     p.add_argument("--objects", choices=OBJECT_SUBSETS, default="all",
                    help="all the objects each run evaluated (default), only the run's held-out ones, "
                         "or only the new ones of evaluate.py --fresh")
+    p.add_argument("--paired", action="append", default=[], metavar='"A minus B"',
+                   help="generator A minus generator B on evaluate.py --neighbourhood's candidates, "
+                        "run by run and pooled (repeatable)")
     p.add_argument("--out", default=None,
                    help="where to write the tables (default: print only)")
     args = p.parse_args(argv)
@@ -43,8 +57,17 @@ def main(argv=None) -> int:
             p.error(f"--labels gives {len(labels)} labels for {len(paths)} results")
     else:
         labels = [_label(path) for path in paths]
+    pairs = []
+    for item in args.paired:
+        after, sep, before = item.partition(" minus ")
+        if not sep or not after.strip() or not before.strip():
+            p.error(f'--paired {item!r}: expected "A minus B" (generator names as evaluate.py printed them)')
+        pairs.append((after.strip(), before.strip()))
     try:
-        tables = combine_results([load_results(path) for path in paths], labels, objects=args.objects)
+        results = [load_results(path) for path in paths]
+        tables = combine_results(results, labels, objects=args.objects)
+        paired = [paired_markdown(a, b, paired_over_runs(results, labels, a, b, objects=args.objects))
+                  for a, b in pairs]
     except (FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -62,6 +85,12 @@ def main(argv=None) -> int:
         if args.out:
             written = table.write(args.out, versus)
             print(f"wrote {', '.join(str(v) for v in written.values())}", file=sys.stderr)
+    for text in paired:
+        print("\n" + text)
+    if paired and args.out:
+        out = Path(args.out) / "paired_seeds.md"
+        out.write_text("\n\n".join(paired) + "\n")
+        print(f"wrote {out}", file=sys.stderr)
     return 0
 
 

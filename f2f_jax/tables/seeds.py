@@ -13,6 +13,8 @@ A run's rows are matched by name (name ``--extra`` rows the same way in every ru
 some runs lack is averaged over the runs that have it and says how many.  ``objects="held-out"``
 or ``"fresh"`` recounts every row on the run's own held-out objects or on the new ones that
 ``evaluate.py --fresh`` added (named ``fresh/...``), from the per-object outcomes results.json keeps.
+``paired_over_runs`` pools one generator's paired gain over another (``evaluate.py
+--neighbourhood``) over the runs, with the fresh objects the runs share resampled as one each.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import copy
 import csv
 import io
 import json
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -329,3 +332,100 @@ def _table_values(results: Mapping, kind: str, objects: str, label: str) -> tupl
         return {row: table1_values(bits(out)) for row, out in per_object.items()}, int(keep.sum())
     return ({row: {c: 100.0 * float(bits(cells[c]).mean()) for c in _COLUMNS[kind]}
              for row, cells in per_object.items()}, int(keep.sum()))
+
+
+def _fresh_set(results: Mapping) -> str | None:
+    """Which fresh objects a run evaluated ("48 seed 7"), read from evaluate.py's ``source``;
+    None where it says none."""
+    m = re.search(r"(\d+) new built-in objects \(seed (-?\d+)\)", str(results.get("source", "")))
+    return f"{m.group(1)} seed {m.group(2)}" if m else None
+
+
+def paired_over_runs(results: Sequence[Mapping], labels: Sequence[str], after: str, before: str, *,
+                     objects: str = "all", n_boot: int = 10000, seed: int = 0) -> dict:
+    """Generator ``after`` minus generator ``before`` on the candidates ``evaluate.py
+    --neighbourhood`` simulated for both, run by run and pooled over the runs.
+
+    results / labels as for ``combine_results`` (results with one label are one run; the first of
+    them that holds both generators' outcomes counts).  Returns {"runs": {label:
+    ``stats.paired_gain``}, "objects": {label: count}, "pooled": {measure: diff, ci_low, ci_high, better, worse, objects,
+    clusters}, "skipped": [labels without both]}; ``objects`` "held-out" or "fresh" keeps only
+    those objects (as ``combine_results``).
+
+    The pooled interval is a cluster bootstrap: the fresh objects of ``evaluate.py --fresh N
+    --seed S`` are the same shapes in every run that used the same N and S, so each of them is
+    one cluster of its per-run differences (resampled together), and each run's held-out object
+    is a cluster of its own.  Resampling object-run pairs one by one would count the shared fresh
+    objects as independent draws and narrow the interval.
+    """
+    from f2f_jax.tables.stats import PAIRED_MEASURES, paired_gain
+
+    if objects not in OBJECT_SUBSETS:
+        raise ValueError(f"objects must be one of {OBJECT_SUBSETS}, got {objects!r}")
+    if len(labels) != len(results):
+        raise ValueError(f"{len(labels)} labels for {len(results)} runs")
+    runs: dict[str, dict] = {}
+    pooled_d: dict[str, list] = {m: [] for m in PAIRED_MEASURES}
+    keys: list[str] = []
+    counts: dict[str, int] = {}
+    for label, r in zip(labels, results):
+        if label in runs:
+            continue
+        outcomes = (r.get("neighbourhood") or {}).get("outcomes") or {}
+        if after not in outcomes or before not in outcomes:
+            continue
+        a, b = np.asarray(outcomes[after], np.float64), np.asarray(outcomes[before], np.float64)
+        names = r.get("names") or [str(i) for i in range(len(a))]
+        if len(names) != len(a) or len(a) != len(b):
+            raise ValueError(f"{label}: neighbourhood outcomes of {len(a)} and {len(b)} objects for "
+                             f"{len(names)} names")
+        if objects != "all":
+            keep = np.array([n.startswith(_FRESH) == (objects == "fresh") for n in names])
+            a, b, names = a[keep], b[keep], [n for n, k in zip(names, keep) if k]
+            if not len(a):
+                continue
+        runs[label] = paired_gain(a, b, n_boot=n_boot, seed=seed)
+        counts[label] = len(a)
+        fresh = _fresh_set(r)
+        for m, f in PAIRED_MEASURES.items():
+            pooled_d[m].append(f(a) - f(b))
+        keys += [f"{n}@{fresh}" if fresh and n.startswith(_FRESH) else f"{n}@{label}" for n in names]
+    skipped = [lab for lab in dict.fromkeys(labels) if lab not in runs]
+    if not runs:
+        raise ValueError(f"no run holds neighbourhood outcomes of both {after!r} and {before!r} "
+                         "(evaluate.py --neighbourhood K with both generators in one call)")
+    cluster_names, cluster = np.unique(np.array(keys), return_inverse=True)
+    n_clusters = len(cluster_names)
+    rng = np.random.default_rng(seed)
+    resample = rng.integers(0, n_clusters, (n_boot, n_clusters))
+    size = np.bincount(cluster, minlength=n_clusters).astype(np.float64)
+    weight = np.stack([np.bincount(row, minlength=n_clusters) for row in resample]).astype(np.float64)
+    pooled = {}
+    for m, parts in pooled_d.items():
+        d = np.concatenate(parts)
+        sums = np.bincount(cluster, weights=d, minlength=n_clusters)
+        boot = (weight @ sums) / (weight @ size)
+        lo, hi = np.percentile(boot, [2.5, 97.5])
+        pooled[m] = {"diff": float(d.mean()), "ci_low": float(lo), "ci_high": float(hi),
+                     "better": int((d > 0).sum()), "worse": int((d < 0).sum()),
+                     "objects": len(d), "clusters": n_clusters}
+    return {"runs": runs, "objects": counts, "pooled": pooled, "skipped": skipped}
+
+
+def paired_markdown(after: str, before: str, gains: Mapping) -> str:
+    """``paired_over_runs``'s figures as a markdown table: trials of 11, own design and all
+    candidates, run by run and pooled (95% bootstrap intervals; objects better / worse)."""
+    def cell(g):
+        return (f"{g['diff']:+.2f} [{g['ci_low']:+.2f}, {g['ci_high']:+.2f}] "
+                f"({g['better']} / {g['worse']})")
+
+    lines = [f"{after} minus {before}, paired over objects (trials of 11):", "",
+             "| run | objects | own design | all candidates |", "|---|---|---|---|"]
+    for label, g in gains["runs"].items():
+        lines.append(f"| {label} | {gains['objects'][label]} | {cell(g['trials_own'])} | {cell(g['trials_mean'])} |")
+    p = gains["pooled"]
+    lines.append(f"| pooled | {p['trials_own']['objects']} ({p['trials_own']['clusters']} distinct) | "
+                 f"{cell(p['trials_own'])} | {cell(p['trials_mean'])} |")
+    if gains["skipped"]:
+        lines += ["", f"Runs without both generators' outcomes: {', '.join(gains['skipped'])}."]
+    return "\n".join(lines)

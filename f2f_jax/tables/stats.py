@@ -191,6 +191,13 @@ def neighbourhood_stats(simulated: np.ndarray) -> dict[str, float]:
             "objects": s.shape[0], "candidates": s.shape[1]}
 
 
+# paired_gain's measures: per object, from its [N, K, 11] simulated outcomes.
+PAIRED_MEASURES = {
+    "trials_mean": lambda s: s.sum(-1).mean(1), "grasp_mean": lambda s: s[..., 0].mean(1),
+    "trials_own": lambda s: s[:, 0].sum(-1), "grasp_own": lambda s: s[:, 0, 0],
+}
+
+
 def paired_gain(after: np.ndarray, before: np.ndarray, *, n_boot: int = 10000,
                 seed: int = 0) -> dict[str, dict[str, float]]:
     """How much ``after`` beats ``before`` on the same objects, with a bootstrap over objects.
@@ -205,14 +212,10 @@ def paired_gain(after: np.ndarray, before: np.ndarray, *, n_boot: int = 10000,
     if a.ndim != 3 or b.ndim != 3 or a.shape[0] != b.shape[0] or a.shape[2] != b.shape[2]:
         raise ValueError(f"after {a.shape} and before {b.shape}: expected [N, K, 11] outcomes of "
                          "the same N objects")
-    per_object = {
-        "trials_mean": lambda s: s.sum(-1).mean(1), "grasp_mean": lambda s: s[..., 0].mean(1),
-        "trials_own": lambda s: s[:, 0].sum(-1), "grasp_own": lambda s: s[:, 0, 0],
-    }
     rng = np.random.default_rng(seed)
     resample = rng.integers(0, a.shape[0], (n_boot, a.shape[0]))
     out = {}
-    for name, f in per_object.items():
+    for name, f in PAIRED_MEASURES.items():
         d = f(a) - f(b)
         boot = d[resample].mean(1)
         lo, hi = np.percentile(boot, [2.5, 97.5])
