@@ -8,7 +8,7 @@ import pytest
 
 from f2f_jax.cli import seed_table as cli
 from f2f_jax.tables import PAPER_TABLE2, ROBUSTNESS, STABILITY, TABLE1_COLUMNS, TABLE2_COLUMNS
-from f2f_jax.tables.seeds import SR_MEAN, combine_results, load_results
+from f2f_jax.tables.seeds import SR_MEAN, combine_results, fresh_source, load_results
 
 
 def _row(level: float, step: float = 0.0) -> dict:
@@ -184,8 +184,7 @@ def _neighbourhood_run(after: np.ndarray, before: np.ndarray, names: list[str], 
                        after_name: str = "Fit2Form", before_name: str = "control") -> dict:
     n_fresh = sum(n.startswith("fresh/") for n in names)
     out = _results({"Imprint": _row(90)}, objects=len(names))
-    out.update(names=names, source=f"held-out objects of runs/x + {n_fresh} new built-in objects "
-                                   f"(seed {fresh_seed})",
+    out.update(names=names, source=f"held-out objects of runs/x + {fresh_source(n_fresh, fresh_seed)}",
                neighbourhood={"outcomes": {after_name: after.tolist(), before_name: before.tolist()}})
     return out
 

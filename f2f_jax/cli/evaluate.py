@@ -62,6 +62,7 @@ from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import mesh_to_tsdf
 from f2f_jax.sim import ray_executor
 from f2f_jax.tables import steps
+from f2f_jax.tables.seeds import FRESH_PREFIX, fresh_source
 from f2f_jax.train.checkpoint import config_from_dict, load_trained_nets
 
 
@@ -204,8 +205,8 @@ def _objects(args, run_dir: Path | None, cfg):
     if args.fresh:
         new, new_names = _builtin_objects(args.fresh, args.seed, cfg)
         objects = np.concatenate([objects[: args.objects], new])
-        names = list(names[: args.objects]) + [f"fresh/{n}" for n in new_names]
-        what += f" + {args.fresh} new built-in objects (seed {args.seed})"
+        names = list(names[: args.objects]) + [f"{FRESH_PREFIX}{n}" for n in new_names]
+        what += f" + {fresh_source(args.fresh, args.seed)}"
     elif args.objects is not None:
         objects, names = objects[: args.objects], names[: args.objects]
     return objects, names, what

@@ -13,9 +13,10 @@ gain over B on the candidates ``evaluate.py --neighbourhood K`` simulated for bo
 pooled over the runs (the fresh objects the runs share are resampled as one cluster each):
 
     python experiments/seed_table.py runs/s*/eval --paired "Fit2Form minus control"
-  Writes table1_seeds.{md,csv,png} (and table2_seeds.*
-where the runs have Table 2) into --out and prints the markdown.  Reads only what evaluate.py
-wrote: nothing is simulated.
+
+Writes table1_seeds.{md,csv,png} (and table2_seeds.* where the runs have Table 2; paired_seeds.md
+with --paired) into --out and prints the markdown.  Reads only what evaluate.py wrote: nothing is
+simulated.
 """
 
 from __future__ import annotations

@@ -38,7 +38,23 @@ KINDS = ("table1", "table2")
 _PAPER = {"table1": figures.PAPER_TABLE1, "table2": figures.PAPER_TABLE2}
 _COLUMNS = {"table1": figures.TABLE1_COLUMNS, "table2": figures.TABLE2_COLUMNS}
 OBJECT_SUBSETS = ("all", "held-out", "fresh")
-_FRESH = "fresh/"  # evaluate.py's prefix for the objects --fresh adds
+FRESH_PREFIX = "fresh/"  # evaluate.py's prefix for the names of the objects --fresh adds
+
+
+def fresh_source(n: int, seed: int) -> str:
+    """How evaluate.py's results.json ``source`` names the objects of ``--fresh N --seed S``;
+    ``_FRESH_SOURCE`` reads it back."""
+    return f"{n} new built-in objects (seed {seed})"
+
+
+_FRESH_SOURCE = re.compile(r"(\d+) new built-in objects \(seed (-?\d+)\)")  # fresh_source, read back
+
+
+def _in_subset(names: Sequence[str], objects: str) -> np.ndarray:
+    """Which of a run's object names are in ``objects`` ("held-out" or "fresh")."""
+    return np.array([n.startswith(FRESH_PREFIX) == (objects == "fresh") for n in names])
+
+
 # Table 1's row-against-row comparison: the summary columns, and the mean of the ten stability and
 # robustness trials (where imprints do not max out, issue 18's test of Fit2Form against Imprint).
 SR_MEAN = "S+R mean"
@@ -318,7 +334,7 @@ def _table_values(results: Mapping, kind: str, objects: str, label: str) -> tupl
     if names is None or per_object is None:
         raise ValueError(f"{label}: its results.json keeps no per-object {kind} outcomes to "
                          f"recount on {objects} objects")
-    keep = np.array([n.startswith(_FRESH) == (objects == "fresh") for n in names])
+    keep = _in_subset(names, objects)
     if not keep.any():
         return {}, 0
 
@@ -337,7 +353,7 @@ def _table_values(results: Mapping, kind: str, objects: str, label: str) -> tupl
 def _fresh_set(results: Mapping) -> str | None:
     """Which fresh objects a run evaluated ("48 seed 7"), read from evaluate.py's ``source``;
     None where it says none."""
-    m = re.search(r"(\d+) new built-in objects \(seed (-?\d+)\)", str(results.get("source", "")))
+    m = _FRESH_SOURCE.search(str(results.get("source", "")))
     return f"{m.group(1)} seed {m.group(2)}" if m else None
 
 
@@ -380,7 +396,7 @@ def paired_over_runs(results: Sequence[Mapping], labels: Sequence[str], after: s
             raise ValueError(f"{label}: neighbourhood outcomes of {len(a)} and {len(b)} objects for "
                              f"{len(names)} names")
         if objects != "all":
-            keep = np.array([n.startswith(_FRESH) == (objects == "fresh") for n in names])
+            keep = _in_subset(names, objects)
             a, b, names = a[keep], b[keep], [n for n, k in zip(names, keep) if k]
             if not len(a):
                 continue
@@ -389,7 +405,7 @@ def paired_over_runs(results: Sequence[Mapping], labels: Sequence[str], after: s
         fresh = _fresh_set(r)
         for m, f in PAIRED_MEASURES.items():
             pooled_d[m].append(f(a) - f(b))
-        keys += [f"{n}@{fresh}" if fresh and n.startswith(_FRESH) else f"{n}@{label}" for n in names]
+        keys += [f"{n}@{fresh}" if fresh and n.startswith(FRESH_PREFIX) else f"{n}@{label}" for n in names]
     skipped = [lab for lab in dict.fromkeys(labels) if lab not in runs]
     if not runs:
         raise ValueError(f"no run holds neighbourhood outcomes of both {after!r} and {before!r} "
