@@ -324,6 +324,7 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     judged = res["fitness_ranking"]["judges"]["cycle 0"]  # the extra's fitness net, same candidates
     assert judged["trials_mean"] == res["fitness_ranking"]["trials_mean"]
     assert judged["spearman_gain"]["objects"] <= 2
+    assert res["fitness_ranking"]["nearest_own"]["trials_picked"] == res["fitness_ranking"]["trials_first"]
     # the design pool (the generator's candidate and the imprints, verified) passes, object by
     # object, at least the trials the Imprint row's fingers pass: they are in its pool
     outcomes = res["table1"]["outcomes"]

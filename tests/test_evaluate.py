@@ -315,6 +315,30 @@ def test_paired_spearman_sees_one_fitness_net_rank_better_than_another():
     assert E.paired_spearman(good, noise, flat)["objects"] == 0
 
 
+def test_nearest_own_ranks_by_distance_from_the_generators_own_design():
+    """The no-fitness-net baseline: candidates further from candidate 0 (either finger) score
+    lower, so it ranks perfectly where straying costs trials and backwards where it pays."""
+    rng = np.random.default_rng(3)
+    n, k, r = 4, 5, 6
+    own = rng.uniform(-1, 1, (n, 1, r, r, r)).astype(np.float32)
+    step = np.arange(k, dtype=np.float32)[None, :, None, None, None] * 0.1  # candidate j strays j steps
+    lefts = own + step * rng.choice([-1, 1], (n, k, r, r, r))
+    rights = np.repeat(own, k, 1)
+    rights[:, 2] += 0.05  # the right finger counts too: candidate 2 strays a little further
+    score = E.nearest_own_scores(lefts, rights)
+    assert score.shape == (n, k) and np.all(score[:, 0] == 0)
+    assert np.all(np.diff(score, axis=1) < 0)  # each candidate strays further than the one before
+    sim = np.zeros((n, k, 11), np.uint8)
+    for j in range(k):
+        sim[:, j, : 11 - 2 * j] = 1  # straying costs two trials a step
+    prior = np.repeat(score[..., None], 11, -1)
+    stats = E.ranking_stats(prior, sim)
+    assert stats["spearman"] == pytest.approx(1.0) and stats["trials_picked"] == 11
+    assert E.ranking_stats(prior, sim[:, ::-1])["spearman"] == pytest.approx(-1.0)
+    with pytest.raises(ValueError, match="R, R, R"):
+        E.nearest_own_scores(lefts[0], rights[0])
+
+
 def test_paired_gain_sees_a_real_gain_and_no_gain_where_there_is_none():
     rng = np.random.default_rng(1)
     before = (rng.random((40, 4, 11)) < 0.5).astype(np.uint8)
@@ -358,9 +382,11 @@ def test_fitness_ranking_simulates_every_candidate_of_a_run(objects, hulls, tiny
     rep = E.ranking_report(models, objects[:2], lefts, rights, feasible, simulated,
                            judges={"itself": models, "other": other})
     assert set(rep["judges"]) == {"itself", "other"}
-    mine = {k: v for k, v in rep.items() if k != "judges"}
+    mine = {k: v for k, v in rep.items() if k not in ("judges", "nearest_own")}
     assert {k: v for k, v in rep["judges"]["itself"].items() if k != "spearman_gain"} == {
         k: v for k, v in mine.items() if k not in ("objects", "candidates", "feasible")}
     g = rep["judges"]["itself"]["spearman_gain"]
     assert g["objects"] == mine["objects_ranked"] > 0 and g["diff"] == 0
     assert rep["judges"]["other"]["spearman_gain"]["objects"] <= 2
+    near = rep["nearest_own"]  # the baseline scores the same candidates: it always picks candidate 0
+    assert near["trials_picked"] == near["trials_first"] == 0 and near["spearman_gain"]["objects"] <= 2

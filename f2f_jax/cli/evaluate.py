@@ -393,6 +393,12 @@ def _fitness_ranking(args, rows: _Rows, objs, hulls, cfg) -> tuple[dict, str]:
              f"generator's own {rk['trials_first']:.2f}, average candidate {rk['trials_mean']:.2f}, "
              f"fitness net's pick {rk['trials_picked']:.2f}, best {rk['trials_best']:.2f}, "
              f"worst {rk['trials_worst']:.2f}"]
+    near = rk["nearest_own"]
+    g = near["spearman_gain"]
+    lines.append(f"  no fitness net, the candidates ranked by closeness to the generator's own design (its "
+                 f"pick: the own design): Spearman {near['spearman']:.2f}; {row}'s net minus it, paired over "
+                 f"{g['objects']} objects: {g['diff']:+.3f} [{g['ci_low']:+.3f}, {g['ci_high']:+.3f}] "
+                 f"(better / worse {g['better']} / {g['worse']})")
     for name, j in rk.get("judges", {}).items():
         g = j["spearman_gain"]
         lines.append(f"  {name}'s fitness net on the same candidates: Spearman {j['spearman']:.2f}, grasp "

@@ -132,18 +132,41 @@ def fitness_ranking(nets, objects, cfg: Config | None = None, *, candidates: int
     return ranking_report(nets, objs, lefts, rights, feasible, simulated, judges=judges)
 
 
+def nearest_own_scores(lefts: np.ndarray, rights: np.ndarray) -> np.ndarray:
+    """The ranking a fitness net has to beat: each candidate scored by how close it lies to the
+    generator's own design (candidate 0), minus the mean absolute difference of both finger
+    volumes.  It knows nothing of the object or the simulator; it ranks well exactly as far as a
+    trained generator's output beats its own latent perturbations, the more so the further they
+    stray.  Its pick is always the own design.
+
+    lefts, rights: [N, K, R, R, R].  Returns [N, K] float64, 0 for candidate 0, negative after."""
+    lefts, rights = np.asarray(lefts), np.asarray(rights)
+    if lefts.ndim != 5 or lefts.shape != rights.shape:
+        raise ValueError(f"lefts {lefts.shape} and rights {rights.shape}: expected two [N, K, R, R, R] arrays")
+    out = np.empty(lefts.shape[:2])
+    for i in range(len(lefts)):  # one object at a time: no second [N, K, R^3] array in memory
+        a, b = lefts[i].astype(np.float32), rights[i].astype(np.float32)
+        out[i] = -(np.abs(a - a[:1]).mean((1, 2, 3)) + np.abs(b - b[:1]).mean((1, 2, 3)))
+    return out
+
+
 def ranking_report(nets, objects, lefts, rights, feasible, simulated, *, judges=None) -> dict:
     """``ranking_stats`` of ``nets``' fitness net on simulated candidates (``candidate_outcomes``'
     lefts, rights [N, K, R, R, R], feasible [N, K], simulated [N, K, 11]), with ``objects``,
     ``candidates`` and ``feasible`` (the feasible share).  judges: {name: TrainedNets} whose
     fitness nets score the same candidates: under "judges", each one's ``ranking_stats`` and
     ``spearman_gain`` (``nets``' within-object Spearman minus the judge's, paired over objects:
-    ``paired_spearman``)."""
+    ``paired_spearman``).  "nearest_own": the same for the ranking by closeness to the own design
+    (``nearest_own_scores``), the baseline a fitness net's ranking is worth something above."""
     objs = np.asarray(objects, np.float32)
     predicted = predict(nets, objs, lefts, rights)
     n, k = feasible.shape
     out = ranking_stats(predicted, simulated)
     out.update(objects=n, candidates=k, feasible=float(feasible.mean()))
+    # ranking_stats scores by the mean over the outcomes: the one score repeated in each
+    prior = np.repeat(nearest_own_scores(lefts, rights)[..., None], simulated.shape[-1], -1)
+    out["nearest_own"] = {**ranking_stats(prior, simulated),
+                          "spearman_gain": paired_spearman(predicted, prior, simulated)}
     if judges:
         out["judges"] = {}
         for name, judge in judges.items():
