@@ -6,8 +6,9 @@
 The same (object, left, right) triples are simulated twice with plain MuJoCo: once as configured,
 once with a physically negligible change (``--perturb``: object mass x1.01, finger friction x1.01,
 a timestep 5% shorter, or ``pieces``: the objects' coacd pieces made again with coacd's seed + 1,
-as good a decomposition as the first, to ~25 s of coacd per object and core; several may be given,
-each a rerun).  ``pieces`` is the floor that any other object geometry is judged against
+as good a decomposition as the first, to ~25 s of coacd per object and core, or ``heights``: each
+finger's height map, which is all of a finger the simulator meshes, moved by a smooth random field
+of ``--height-sd`` voxels, one rerun per value; several may be given, each a rerun).  ``pieces`` is the floor that any other object geometry is judged against
 (``sim_agreement.py``): no decomposition can be asked to agree with coacd's more often than
 coacd's agrees with itself.  A design whose outcome
 flips under a 1% change in mass is decided by the solver's path, not by its shape: no fitness net
@@ -18,6 +19,12 @@ Two sources of triples:
 
 * ``--n N``: builtin objects with the pretraining dataset's pairs (imprint, WSG50, one cut pair),
   as ``mjx_agreement.py`` makes them (same seed, same triples).
+``heights`` asks how finely the outcomes depend on the fingers' shape: at a tenth of a voxel
+(0.15 mm, a printer's tolerance) or half a voxel, how often does a trial flip and does one object's
+ranking of its candidates survive?  ``--height-sd 0`` is the re-voxelisation alone (height map ->
+TSDF), the floor of the others.  A ranking that a half-voxel change scrambles cannot be learnt by
+a fitness net that sees the fingers at 40^3, nor trusted in a printed finger.
+
 * ``--run-dir RUN --candidates K``: ``f2f_jax.design``'s K candidates (the generator's own output
   and K - 1 latent perturbations) on the run's held-out objects.  Also printed: the within-object
   test-retest Spearman of trials passed, and how the best candidate of the first run scores in
@@ -52,6 +59,41 @@ PERTURBATIONS = {
 }
 PIECES = "pieces"  # the object pieces again, by coacd with these settings:
 PIECES_SETTINGS = CoacdSettings(seed=CoacdSettings().seed + 1)
+HEIGHTS = "heights"  # every finger's height map moved by a smooth field of --height-sd voxels
+HEIGHT_GRID = 5  # the field: Gaussian on a 5 x 5 grid over the mount, bilinear between (as the
+# height generator's candidates, whose noise is 2 voxels at these points)
+
+
+def perturbed_heights(fingers: np.ndarray, sd_voxels: float, truncation_voxels: float,
+                      rng: np.random.Generator) -> np.ndarray:
+    """Fingers [N, R, R, R] (TSDFs, finger frame) with their height maps moved by a smooth random
+    field of standard deviation ``sd_voxels`` at the points of a ``HEIGHT_GRID``^2 grid over the
+    mount (bilinear between them), then voxelised again (``heights_to_tsdf``).  Columns without
+    solid stay empty; columns solid up to the cube's far face stay as they are (a TSDF in the cube
+    cannot say how far past it they reach, so their height cannot be moved or even re-voxelised
+    exactly); undercuts are filled, as the simulator's meshes fill them.  sd_voxels 0: the
+    re-voxelisation alone, which leaves the height maps as they were.  Returns float32 [N, R, R, R]."""
+    import jax.numpy as jnp
+
+    from f2f_jax.nets.generator import heights_to_tsdf, tsdf_heights
+
+    if sd_voxels < 0:
+        raise ValueError(f"sd_voxels must be >= 0, got {sd_voxels}")
+    fingers = np.asarray(fingers, np.float32)
+    n, r = len(fingers), fingers.shape[-1]
+    heights = np.asarray(tsdf_heights(jnp.asarray(fingers)), np.float64)
+    t = np.linspace(0.0, HEIGHT_GRID - 1.0, r)
+    i0 = np.clip(np.floor(t).astype(int), 0, HEIGHT_GRID - 2)
+    f = t - i0
+    coarse = rng.standard_normal((n, HEIGHT_GRID, HEIGHT_GRID))
+    rows = coarse[:, i0, :] * (1 - f)[:, None] + coarse[:, i0 + 1, :] * f[:, None]
+    field = rows[:, :, i0] * (1 - f) + rows[:, :, i0 + 1] * f
+    # a column with solid keeps at least half a voxel of it (below that heights_to_tsdf empties it)
+    moved = np.where(heights > 0, np.clip(heights + sd_voxels * field, 0.5, r - 0.5), 0.0)
+    out = np.array(heights_to_tsdf(jnp.asarray(moved, jnp.float32), truncation_voxels), np.float32)
+    full = fingers[..., -1] < 0  # solid in the top voxel: up to the far face
+    out[full] = fingers[full]
+    return out
 
 
 def retest_stats(first: np.ndarray, second: np.ndarray) -> dict:
@@ -95,8 +137,13 @@ def main(argv=None) -> int:
     p.add_argument("--n", type=int, default=64, help="builtin triples (ignored with --run-dir)")
     p.add_argument("--run-dir", type=Path, default=None, help="a co-training run: its design candidates")
     p.add_argument("--candidates", type=int, default=8, help="candidates per held-out object (--run-dir)")
-    p.add_argument("--perturb", nargs="+", default=["mass"], choices=sorted([*PERTURBATIONS, PIECES]),
+    p.add_argument("--perturb", nargs="+", default=["mass"],
+                   choices=sorted([*PERTURBATIONS, PIECES, HEIGHTS]),
                    help="reruns, one per perturbation (default: mass)")
+    p.add_argument("--height-sd", type=float, nargs="+", default=[0.2], metavar="VOXELS",
+                   help="--perturb heights: the field's standard deviation in voxels (1.5 mm at the "
+                        "default's 40^3 over 6 cm), one rerun per value (default 0.2; 0: the "
+                        "re-voxelisation alone)")
     p.add_argument("--config", default="default", choices=sorted(config.CONFIGS),
                    help="simulation phases of builtin triples (a run uses its own config)")
     p.add_argument("--seed", type=int, default=0, help="builtin triples / candidate noise")
@@ -106,6 +153,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.n < 1 or args.candidates < 2:
         p.error("--n must be >= 1 and --candidates >= 2")
+    if any(sd < 0 for sd in args.height_sd):
+        p.error("--height-sd must be >= 0 voxels")
     if args.run_dir is not None and not (args.run_dir / "run.json").exists():
         print(f"sim_retest: error: {args.run_dir} is not a co-training run directory (no run.json)",
               file=sys.stderr)
@@ -140,9 +189,16 @@ def main(argv=None) -> int:
         p.error(f"--perturb {PIECES} remakes coacd pieces; this config's objects are "
                 f"{cfg.geometry.object_method!r}")
 
-    def simulate(c, pieces=None):
-        return sim.evaluate(o, lft, rgt, backend="mujoco", cfg=c, threads=args.threads,
+    def simulate(c, pieces=None, fingers=None):
+        left, right = (lft, rgt) if fingers is None else fingers
+        return sim.evaluate(o, left, right, backend="mujoco", cfg=c, threads=args.threads,
                             object_hulls=hl if pieces is None else pieces, progress=False)
+
+    def moved_fingers(sd):
+        """Every finger's height map moved by sd voxels (``perturbed_heights``), one seed per rerun."""
+        rng = np.random.default_rng([args.seed, int(round(sd * 1000))])
+        tr = cfg.geometry.truncation_voxels
+        return perturbed_heights(lft, sd, tr, rng), perturbed_heights(rgt, sd, tr, rng)
 
     def reseeded_pieces():
         """Every object's pieces by coacd with seed + 1 (cached on disk like the first)."""
@@ -154,14 +210,18 @@ def main(argv=None) -> int:
     base = simulate(cfg)
     print(f"first run: {time.perf_counter() - t:.1f} s", flush=True)
     results = {"source": what, "n_triples": len(o), "perturbations": {}}
-    for name in args.perturb:
+    reruns = [(f"{HEIGHTS} {sd:g}" if name == HEIGHTS else name, name, sd)
+              for name in args.perturb for sd in (args.height_sd if name == HEIGHTS else [None])]
+    for label, name, sd in reruns:
         t = time.perf_counter()
         if name == PIECES:
             again = simulate(cfg, reseeded_pieces())
+        elif name == HEIGHTS:
+            again = simulate(cfg, fingers=moved_fingers(sd))
         else:
             again = simulate(cfg.replace(sim=PERTURBATIONS[name](cfg.sim)))
         rep = agreement_report(base, again)
-        print(f"\n{name} rerun ({time.perf_counter() - t:.1f} s)")
+        print(f"\n{label} rerun ({time.perf_counter() - t:.1f} s)")
         print(f"{'trial':>7s} " + " ".join(f"{n:>5s}" for n in TRIAL_NAMES))
         print(f"{'agree':>7s} " + " ".join(f"{a:5.3f}" for a in rep["per_trial"]))
         print(f"{'first':>7s} " + " ".join(f"{a:5.2f}" for a in base.mean(0)))
@@ -179,7 +239,7 @@ def main(argv=None) -> int:
                   f"{rs['best_first']:.2f} trials, {rs['best_retest']:.2f} in the rerun (average "
                   f"candidate {rs['mean']:.2f})")
             entry.update(rs)
-        results["perturbations"][name] = entry
+        results["perturbations"][label] = entry
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=1))

@@ -77,3 +77,43 @@ def test_pieces_rerun_asks_coacd_for_the_next_seed_and_simulates_what_it_gets(tm
     assert len(simulated) == 2 and all(any(h is m for m in handed[1]) for h in simulated[1])
     got = json.loads(out.read_text())["perturbations"]["pieces"]
     assert got["agreement"] == 1.0 and got["whole_vectors"] == 1.0
+
+
+def test_heights_rerun_moves_what_the_simulator_meshes_by_the_asked_amount():
+    """``--perturb heights``: a finger's height map (all the simulator meshes of it) moves by about
+    the asked standard deviation, its empty columns stay empty, and at 0 only the
+    re-voxelisation is left, which the simulator's height map does not see."""
+    from f2f_jax import config
+    from f2f_jax.data import builtin_objects
+    from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf
+    from f2f_jax.geometry.finger_tiling import finger_height_map
+
+    g = config.get("default").geometry
+    left, right = imprint_fingers(mesh_to_tsdf(builtin_objects(1, seed=0)[0], g), g)
+    fingers = np.stack([left, right])
+    before = np.stack([finger_height_map(f, g) for f in fingers]) / g.voxel_size  # voxels
+    solid = before > 0
+
+    def heights(sd, seed=0):
+        moved = retest.perturbed_heights(fingers, sd, g.truncation_voxels, np.random.default_rng(seed))
+        assert moved.shape == fingers.shape and moved.dtype == np.float32
+        return np.stack([finger_height_map(f, g) for f in moved]) / g.voxel_size
+
+    np.testing.assert_allclose(heights(0.0), before, atol=1e-4)
+    inside = solid & (before < g.resolution - 0.5)  # the columns that end inside the cube move
+    assert inside.sum() > 100
+    for sd in (0.2, 1.0):
+        after = heights(sd)
+        assert np.all(after[~solid] == 0) and np.all(after[solid] > 0)
+        np.testing.assert_array_equal(after[solid & ~inside], before[solid & ~inside])
+        change = np.abs(after - before)[inside]
+        # a smooth field of sd s at the grid points, bilinear between: |change| ~ 0.4-0.8 s on average
+        assert 0.25 * sd < change.mean() < sd and change.max() < 5 * sd
+    np.testing.assert_array_equal(heights(0.2, seed=1), heights(0.2, seed=1))
+    assert not np.array_equal(heights(0.2, seed=1), heights(0.2, seed=2))
+    import pytest
+
+    with pytest.raises(ValueError, match="sd_voxels"):
+        retest.perturbed_heights(fingers, -0.1, g.truncation_voxels, np.random.default_rng(0))
+    with pytest.raises(SystemExit):
+        retest.main(["--perturb", "heights", "--height-sd", "-1"])
