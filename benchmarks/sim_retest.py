@@ -8,10 +8,10 @@ once with a physically negligible change (``--perturb``: object mass x1.01, fing
 a timestep 5% shorter, or ``pieces``: the objects' coacd pieces made again with coacd's seed + 1,
 as good a decomposition as the first, to ~25 s of coacd per object and core, or ``heights``: each
 finger's height map, which is all of a finger the simulator meshes, moved by a smooth random field
-of ``--height-sd`` voxels, one rerun per value; several may be given, each a rerun).  ``pieces`` is the floor that any other object geometry is judged against
-(``sim_agreement.py``): no decomposition can be asked to agree with coacd's more often than
-coacd's agrees with itself.  A design whose outcome
-flips under a 1% change in mass is decided by the solver's path, not by its shape: no fitness net
+of ``--height-sd`` voxels, one rerun per value; several may be given, each a rerun).  ``pieces``
+is the floor that any other object geometry is judged against (``sim_agreement.py``): no
+decomposition can be asked to agree with coacd's more often than coacd's agrees with itself.  A
+design whose outcome flips under a 1% change in mass is decided by the solver's path, not by its shape: no fitness net
 can learn such a flip, and no backend (MJX included, ``mjx_agreement.py``) can be asked to agree
 with MuJoCo more often than MuJoCo agrees with itself.
 
@@ -19,16 +19,17 @@ Two sources of triples:
 
 * ``--n N``: builtin objects with the pretraining dataset's pairs (imprint, WSG50, one cut pair),
   as ``mjx_agreement.py`` makes them (same seed, same triples).
-``heights`` asks how finely the outcomes depend on the fingers' shape: at a tenth of a voxel
-(0.15 mm, a printer's tolerance) or half a voxel, how often does a trial flip and does one object's
-ranking of its candidates survive?  ``--height-sd 0`` is the re-voxelisation alone (height map ->
-TSDF), the floor of the others.  A ranking that a half-voxel change scrambles cannot be learnt by
-a fitness net that sees the fingers at 40^3, nor trusted in a printed finger.
-
 * ``--run-dir RUN --candidates K``: ``f2f_jax.design``'s K candidates (the generator's own output
   and K - 1 latent perturbations) on the run's held-out objects.  Also printed: the within-object
   test-retest Spearman of trials passed, and how the best candidate of the first run scores in
   the rerun against its first-run score (the part of best-of-K that is selection luck).
+
+``heights`` asks how finely the outcomes depend on the fingers' shape: moved by a tenth of a
+voxel on average (``--height-sd 0.2``: 0.15 mm, a printer's tolerance) or by half a voxel
+(``--height-sd 1``), how often does a trial flip, and does one object's ranking of its candidates
+survive?  ``--height-sd 0`` is the re-voxelisation alone (height map -> TSDF), the floor of the
+others.  A ranking that a half-voxel change scrambles cannot be learnt by a fitness net that sees
+the fingers at 40^3, nor trusted in a printed finger.
 
 Printed per perturbation: agreement per trial and overall, whole 11-vectors, success rates of both
 runs.  ``--json PATH`` writes the figures.  Cost: one MuJoCo evaluation per triple and run (about
