@@ -61,15 +61,14 @@ PERTURBATIONS = {
 PIECES = "pieces"  # the object pieces again, by coacd with these settings:
 PIECES_SETTINGS = CoacdSettings(seed=CoacdSettings().seed + 1)
 HEIGHTS = "heights"  # every finger's height map moved by a smooth field of --height-sd voxels
-HEIGHT_GRID = 5  # the field: Gaussian on a 5 x 5 grid over the mount, bilinear between (as the
-# height generator's candidates, whose noise is 2 voxels at these points)
 
 
 def perturbed_heights(fingers: np.ndarray, sd_voxels: float, truncation_voxels: float,
                       rng: np.random.Generator) -> np.ndarray:
     """Fingers [N, R, R, R] (TSDFs, finger frame) with their height maps moved by a smooth random
-    field of standard deviation ``sd_voxels`` at the points of a ``HEIGHT_GRID``^2 grid over the
-    mount (bilinear between them), then voxelised again (``heights_to_tsdf``).  Columns without
+    field of standard deviation ``sd_voxels`` at the points of a ``HEIGHT_NOISE_GRID``^2 grid over
+    the mount (bilinear between them: ``nets.inference.smooth_field``, the form of the height
+    generator's own candidates, whose noise is 2 voxels there), then voxelised again (``heights_to_tsdf``).  Columns without
     solid stay empty; columns solid up to the cube's far face stay as they are (a TSDF in the cube
     cannot say how far past it they reach, so their height cannot be moved or even re-voxelised
     exactly); undercuts are filled, as the simulator's meshes fill them.  sd_voxels 0: the
@@ -77,18 +76,14 @@ def perturbed_heights(fingers: np.ndarray, sd_voxels: float, truncation_voxels: 
     import jax.numpy as jnp
 
     from f2f_jax.nets.generator import heights_to_tsdf, tsdf_heights
+    from f2f_jax.nets.inference import HEIGHT_NOISE_GRID, smooth_field
 
     if sd_voxels < 0:
         raise ValueError(f"sd_voxels must be >= 0, got {sd_voxels}")
     fingers = np.asarray(fingers, np.float32)
     n, r = len(fingers), fingers.shape[-1]
     heights = np.asarray(tsdf_heights(jnp.asarray(fingers)), np.float64)
-    t = np.linspace(0.0, HEIGHT_GRID - 1.0, r)
-    i0 = np.clip(np.floor(t).astype(int), 0, HEIGHT_GRID - 2)
-    f = t - i0
-    coarse = rng.standard_normal((n, HEIGHT_GRID, HEIGHT_GRID))
-    rows = coarse[:, i0, :] * (1 - f)[:, None] + coarse[:, i0 + 1, :] * f[:, None]
-    field = rows[:, :, i0] * (1 - f) + rows[:, :, i0 + 1] * f
+    field = smooth_field(rng.standard_normal((n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID)), r)
     # a column with solid keeps at least half a voxel of it (below that heights_to_tsdf empties it)
     moved = np.where(heights > 0, np.clip(heights + sd_voxels * field, 0.5, r - 0.5), 0.0)
     out = np.array(heights_to_tsdf(jnp.asarray(moved, jnp.float32), truncation_voxels), np.float32)

@@ -135,13 +135,20 @@ def code_noise(net_cfg: NetConfig, key, shape: tuple[int, ...], noise) -> jax.Ar
         return noise * jax.random.normal(key, (*shape, d), jnp.float32)
     g = HEIGHT_NOISE_GRID
     coarse = jax.random.normal(key, (*shape, g, g), jnp.float32)
-    # bilinear between the grid points, grid points at the mount's corners and evenly between
-    t = jnp.linspace(0.0, g - 1.0, r)
-    i0 = jnp.clip(jnp.floor(t).astype(jnp.int32), 0, g - 2)
+    return (noise * HEIGHT_NOISE_VOXELS) * smooth_field(coarse, r).reshape(*shape, r * r)
+
+
+def smooth_field(coarse, r: int):
+    """Values on a G x G grid over the mount [..., G, G] -> a field over its R x R columns
+    [..., R, R], bilinear between the grid points (at the mount's corners and evenly between).
+    Works in the array's own library: jax arrays in jax, numpy arrays in numpy (float64 stays)."""
+    xp = jnp if isinstance(coarse, jax.Array) else np
+    g = coarse.shape[-1]
+    t = xp.linspace(0.0, g - 1.0, r)
+    i0 = xp.clip(xp.floor(t).astype(xp.int32), 0, g - 2)
     f = t - i0
     rows = coarse[..., i0, :] * (1 - f)[:, None] + coarse[..., i0 + 1, :] * f[:, None]
-    field = rows[..., i0] * (1 - f) + rows[..., i0 + 1] * f
-    return (noise * HEIGHT_NOISE_VOXELS) * field.reshape(*shape, r * r)
+    return rows[..., i0] * (1 - f) + rows[..., i0 + 1] * f
 
 
 @functools.partial(jax.jit, static_argnames=("net_cfg", "candidates", "chunk"))
