@@ -52,6 +52,7 @@ from f2f_jax import config, sim
 from f2f_jax.bench.agreement import agreement_report, builtin_triples
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.geometry.coacd_pieces import CoacdSettings
+from f2f_jax.nets.inference import perturbed_heights
 
 PERTURBATIONS = {
     "mass": lambda s: dataclasses.replace(s, object_mass=s.object_mass * 1.01),
@@ -61,35 +62,6 @@ PERTURBATIONS = {
 PIECES = "pieces"  # the object pieces again, by coacd with these settings:
 PIECES_SETTINGS = CoacdSettings(seed=CoacdSettings().seed + 1)
 HEIGHTS = "heights"  # every finger's height map moved by a smooth field of --height-sd voxels
-
-
-def perturbed_heights(fingers: np.ndarray, sd_voxels: float, truncation_voxels: float,
-                      rng: np.random.Generator) -> np.ndarray:
-    """Fingers [N, R, R, R] (TSDFs, finger frame) with their height maps moved by a smooth random
-    field of standard deviation ``sd_voxels`` at the points of a ``HEIGHT_NOISE_GRID``^2 grid over
-    the mount (bilinear between them: ``nets.inference.smooth_field``, the form of the height
-    generator's own candidates, whose noise is 2 voxels there), then voxelised again (``heights_to_tsdf``).  Columns without
-    solid stay empty; columns solid up to the cube's far face stay as they are (a TSDF in the cube
-    cannot say how far past it they reach, so their height cannot be moved or even re-voxelised
-    exactly); undercuts are filled, as the simulator's meshes fill them.  sd_voxels 0: the
-    re-voxelisation alone, which leaves the height maps as they were.  Returns float32 [N, R, R, R]."""
-    import jax.numpy as jnp
-
-    from f2f_jax.nets.generator import heights_to_tsdf, tsdf_heights
-    from f2f_jax.nets.inference import HEIGHT_NOISE_GRID, smooth_field
-
-    if sd_voxels < 0:
-        raise ValueError(f"sd_voxels must be >= 0, got {sd_voxels}")
-    fingers = np.asarray(fingers, np.float32)
-    n, r = len(fingers), fingers.shape[-1]
-    heights = np.asarray(tsdf_heights(jnp.asarray(fingers)), np.float64)
-    field = smooth_field(rng.standard_normal((n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID)), r)
-    # a column with solid keeps at least half a voxel of it (below that heights_to_tsdf empties it)
-    moved = np.where(heights > 0, np.clip(heights + sd_voxels * field, 0.5, r - 0.5), 0.0)
-    out = np.array(heights_to_tsdf(jnp.asarray(moved, jnp.float32), truncation_voxels), np.float32)
-    full = fingers[..., -1] < 0  # solid in the top voxel: up to the far face
-    out[full] = fingers[full]
-    return out
 
 
 def retest_stats(first: np.ndarray, second: np.ndarray) -> dict:

@@ -87,6 +87,7 @@ def test_heights_rerun_moves_what_the_simulator_meshes_by_the_asked_amount():
     from f2f_jax.data import builtin_objects
     from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf
     from f2f_jax.geometry.finger_tiling import finger_height_map
+    from f2f_jax.nets.inference import perturbed_heights
 
     g = config.get("default").geometry
     left, right = imprint_fingers(mesh_to_tsdf(builtin_objects(1, seed=0)[0], g), g)
@@ -95,7 +96,7 @@ def test_heights_rerun_moves_what_the_simulator_meshes_by_the_asked_amount():
     solid = before > 0
 
     def heights(sd, seed=0):
-        moved = retest.perturbed_heights(fingers, sd, g.truncation_voxels, np.random.default_rng(seed))
+        moved = perturbed_heights(fingers, sd, g.truncation_voxels, np.random.default_rng(seed))
         assert moved.shape == fingers.shape and moved.dtype == np.float32
         return np.stack([finger_height_map(f, g) for f in moved]) / g.voxel_size
 
@@ -114,6 +115,18 @@ def test_heights_rerun_moves_what_the_simulator_meshes_by_the_asked_amount():
     import pytest
 
     with pytest.raises(ValueError, match="sd_voxels"):
-        retest.perturbed_heights(fingers, -0.1, g.truncation_voxels, np.random.default_rng(0))
+        perturbed_heights(fingers, -0.1, g.truncation_voxels, np.random.default_rng(0))
+    # the field's grid values given instead of drawn: the same draws give the same fingers, and
+    # one grid moves two fingers alike (a benchmark's paired copies)
+    grid = np.random.default_rng(5).standard_normal((2, 5, 5))
+    np.testing.assert_array_equal(perturbed_heights(fingers, 0.2, g.truncation_voxels, grid=grid),
+                                  perturbed_heights(fingers, 0.2, g.truncation_voxels,
+                                                    np.random.default_rng(5)))
+    same = perturbed_heights(fingers[[0, 0]], 0.2, g.truncation_voxels, grid=grid[[1, 1]])
+    np.testing.assert_array_equal(same[0], same[1])
+    with pytest.raises(ValueError, match="grid"):
+        perturbed_heights(fingers, 0.2, g.truncation_voxels, grid=grid[:1])
+    with pytest.raises(ValueError, match="one of the two"):
+        perturbed_heights(fingers, 0.2, g.truncation_voxels)
     with pytest.raises(SystemExit):
         retest.main(["--perturb", "heights", "--height-sd", "-1"])

@@ -22,7 +22,7 @@ import numpy as np
 
 from f2f_jax.config import Config, NetConfig
 from f2f_jax.nets.fitness import FitnessNet, fitness_input
-from f2f_jax.nets.generator import generator_module
+from f2f_jax.nets.generator import generator_module, heights_to_tsdf, tsdf_heights
 from f2f_jax.nets.shape import RESOLUTION
 
 # Standard deviation of the Gaussian added to each finger-latent coordinate of candidates
@@ -149,6 +149,42 @@ def smooth_field(coarse, r: int):
     f = t - i0
     rows = coarse[..., i0, :] * (1 - f)[:, None] + coarse[..., i0 + 1, :] * f[:, None]
     return rows[..., i0] * (1 - f) + rows[..., i0 + 1] * f
+
+
+def perturbed_heights(fingers: np.ndarray, sd_voxels: float, truncation_voxels: float,
+                      rng: np.random.Generator | None = None, *, grid: np.ndarray | None = None
+                      ) -> np.ndarray:
+    """Fingers [N, R, R, R] (TSDFs, finger frame) with their height maps moved by a smooth random
+    field: standard deviation ``sd_voxels`` at the points of a ``HEIGHT_NOISE_GRID``^2 grid over the
+    mount, bilinear between them (``smooth_field``, the form of the height generator's own
+    candidates), then voxelised again (``heights_to_tsdf``).  A printer's error, or any change of a
+    finger finer than a voxel: ``design(..., tolerance=...)`` and ``benchmarks/sim_retest.py
+    --perturb heights`` simulate fingers moved so.
+
+    Columns without solid stay empty; columns solid up to the cube's far face stay as they are (a
+    TSDF in the cube cannot say how far past it they reach, so their height cannot be moved or even
+    re-voxelised exactly); undercuts are filled, as the simulator's meshes fill them.  sd_voxels 0:
+    the re-voxelisation alone, which leaves the height maps as they were.  rng: a numpy Generator
+    (one field per finger, drawn in order), or grid: the field's standard normal values at the
+    grid points [N, G, G] (to move several fingers alike).  Returns float32 [N, R, R, R]."""
+    if sd_voxels < 0:
+        raise ValueError(f"sd_voxels must be >= 0, got {sd_voxels}")
+    if (rng is None) == (grid is None):
+        raise ValueError("give the field's rng or its grid values, one of the two")
+    fingers = np.asarray(fingers, np.float32)
+    n, r = len(fingers), fingers.shape[-1]
+    shape = (n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID)
+    grid = rng.standard_normal(shape) if grid is None else np.asarray(grid, np.float64)
+    if grid.shape != shape:
+        raise ValueError(f"grid: expected shape {shape}, got {grid.shape}")
+    heights = np.asarray(tsdf_heights(jnp.asarray(fingers)), np.float64)
+    field = smooth_field(grid, r)
+    # a column with solid keeps at least half a voxel of it (below that heights_to_tsdf empties it)
+    moved = np.where(heights > 0, np.clip(heights + sd_voxels * field, 0.5, r - 0.5), 0.0)
+    out = np.array(heights_to_tsdf(jnp.asarray(moved, jnp.float32), truncation_voxels), np.float32)
+    full = fingers[..., -1] < 0  # solid in the top voxel: up to the far face
+    out[full] = fingers[full]
+    return out
 
 
 @functools.partial(jax.jit, static_argnames=("net_cfg", "candidates", "chunk"))
