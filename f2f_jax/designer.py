@@ -22,9 +22,17 @@ How a design is chosen, per object:
    looser and a tighter fit), so the verified pick never passes fewer of its simulated trials
    than the imprint fingers would; ``imprint=False`` leaves them out, ``imprint=True`` adds them
    without ``verify`` too.  ``FingerPair.origin`` says where the pick came from.
+   With ``tolerance`` (millimetres) each feasible candidate is also simulated as ``copies`` moved
+   copies: both fingers' height maps moved by a smooth random field of that standard deviation
+   (``nets.inference.perturbed_heights``), a printer's error.  One trial of a design turns on
+   tenths of a millimetre of finger (``benchmarks/sim_retest.py --perturb heights``: a field of
+   0.15 mm flips 5% of trials), so a pick by its exact outcome alone is partly luck; a pick by its mean
+   over the copies is one whose outcome survives printing, and ``FingerPair.simulated_mean``
+   says what to expect of the printed fingers.
 5. Ranking: feasible first, then the simulated outcome (number of the 11 trials passed, when
-   verified), then the mean predicted probability, then the candidate index (the generator's own
-   output wins full ties).  When no candidate is feasible the best-predicted one is returned with
+   verified; with ``tolerance``, its mean over the exact design and its moved copies), then the
+   mean predicted probability, then the candidate index (the generator's own output wins full
+   ties).  When no candidate is feasible the best-predicted one is returned with
    ``feasible=False`` and an ``InfeasibleDesignWarning``.
 
 Inside the jitted calls the candidates run in chunks of ``nets.inference.CHUNK`` (``lax.map``), so
@@ -37,13 +45,14 @@ import dataclasses
 import warnings
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from f2f_jax.config import BACKENDS, TRIAL_NAMES, GeometryConfig
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import check_tsdf, export_finger_stl, imprint_fingers, postprocess
 from f2f_jax.nets import RESOLUTION
-from f2f_jax.nets.inference import LATENT_NOISE, TrainedNets, as_key, predict, propose
+from f2f_jax.nets.inference import LATENT_NOISE, TrainedNets, as_key, perturbed_heights, predict, propose
 
 # The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
 # Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
@@ -72,6 +81,8 @@ class FingerPair:
     origin: where the candidate came from: "generator" (its own output), "generator + latent
         noise" ("generator + height noise" for a height-map generator), or one of the
         ``IMPRINT_VARIANTS`` ("imprint", ...).
+    moved: [C, 11] uint8 simulated outcomes of C copies of the pair with both fingers moved by
+        ``tolerance`` millimetres (``design(..., tolerance=...)``), or None.
     """
 
     left: np.ndarray
@@ -86,11 +97,22 @@ class FingerPair:
     source: str = ""
     geometry: GeometryConfig = dataclasses.field(default_factory=GeometryConfig)
     origin: str = GENERATOR
+    moved: np.ndarray | None = None
+    tolerance: float = 0.0
 
     @property
     def predicted_mean(self) -> float:
         """Mean predicted success probability over the 11 outcomes."""
         return float(np.mean(self.predicted))
+
+    @property
+    def simulated_mean(self) -> float | None:
+        """Trials passed, averaged over the exact pair and its moved copies (what the verified
+        ranking used); the exact pair's count without copies; None when not verified."""
+        if self.simulated is None:
+            return None
+        runs = [self.simulated[None]] + ([] if self.moved is None else [self.moved])
+        return float(np.concatenate(runs).sum(axis=-1).mean())
 
     def export_stl(self, directory) -> tuple[Path, Path]:
         """Write ``left.stl`` and ``right.stl`` (finger plus mount plate, watertight, millimetres)
@@ -127,6 +149,9 @@ class FingerPair:
             simulated=(None if self.simulated is None else
                        {n: int(s) for n, s in zip(TRIAL_NAMES, self.simulated)}),
             simulated_passed=None if self.simulated is None else int(np.sum(self.simulated)),
+            tolerance_mm=float(self.tolerance),
+            moved_passed=None if self.moved is None else [int(n) for n in self.moved.sum(axis=-1)],
+            simulated_mean=(None if self.simulated_mean is None else round(self.simulated_mean, 4)),
             candidate=int(self.candidate), n_candidates=int(self.n_candidates),
             n_feasible=int(self.n_feasible), origin=self.origin, source=self.source,
         )
@@ -137,18 +162,28 @@ class FingerPair:
                 f"{self.n_feasible} feasible), predicted mean {self.predicted_mean:.2f}")
         if self.simulated is not None:
             text += f", simulated {int(np.sum(self.simulated))}/{len(self.simulated)}"
+        if self.moved is not None:
+            text += (f" ({self.simulated_mean:.1f} on average with {len(self.moved)} copies moved "
+                     f"by {self.tolerance:g} mm)")
         return text
 
     def __str__(self) -> str:
         lines = [f"FingerPair: {self._headline()}"]
         if self.source:
             lines.append(f"  nets: {self.source}")
-        lines.append(f"  {'outcome':<8}{'predicted':>10}{'simulated':>10}")
+        moved = self.moved is not None
+        lines.append(f"  {'outcome':<8}{'predicted':>10}{'simulated':>10}" + (f"{'moved':>8}" if moved else ""))
         for i, name in enumerate(TRIAL_NAMES):
             sim = "-" if self.simulated is None else str(int(self.simulated[i]))
-            lines.append(f"  {name:<8}{self.predicted[i]:>10.3f}{sim:>10}")
+            row = f"  {name:<8}{self.predicted[i]:>10.3f}{sim:>10}"
+            if moved:
+                row += f"{int(self.moved[:, i].sum())}/{len(self.moved)}".rjust(8)
+            lines.append(row)
         sim = "-" if self.simulated is None else f"{int(np.sum(self.simulated))}/{len(self.simulated)}"
-        lines.append(f"  {'mean':<8}{self.predicted_mean:>10.3f}{sim:>10}")
+        row = f"  {'mean':<8}{self.predicted_mean:>10.3f}{sim:>10}"
+        if moved:
+            row += f"{self.moved.sum(axis=-1).mean():.1f}".rjust(8)
+        lines.append(row)
         return "\n".join(lines)
 
     __repr__ = __str__
@@ -157,7 +192,7 @@ class FingerPair:
 def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates: int = 1,
            verify: bool = False, backend: str = "mujoco", run_dir=None,
            noise: float = LATENT_NOISE, progress: bool | None = None, executor: str = "threads",
-           imprint: bool | None = None):
+           imprint: bool | None = None, tolerance: float = 0.0, copies: int = 3):
     """Design a finger pair for each object.
 
     obj_tsdf: [40, 40, 40] float32 object TSDF (negative inside) -> FingerPair, or a batch
@@ -174,6 +209,12 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         height-map generator (``net.generator = "heights"``) the noise of a smooth field added to
         each height map, ``noise x nets.inference.HEIGHT_NOISE_VOXELS`` voxels.
     progress: the simulation's progress bar with ``verify`` (None: ``sim.evaluate``'s default).
+    tolerance: with ``verify``, also simulate ``copies`` copies of every feasible candidate with
+        both fingers' height maps moved by a smooth random field of this standard deviation in
+        millimetres at its 5 x 5 grid points over the mount (a column moves by about half of it
+        on average: 0.3 moves them ~0.15 mm; 0, the default: no copies), and rank by the mean over
+        the exact pair and its copies; costs 1 + copies times the simulation.  The copies' fields
+        are drawn from ``key``.  ``benchmarks/design_tolerance.py`` measures what it buys.
 
     Raises VolumeError for a wrong shape, NaN/inf values or an empty or all-inside volume (naming
     the batch index), ValueError for bad options, CheckpointError (an F2FError) when params is
@@ -188,6 +229,12 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
     if not np.isfinite(noise) or noise < 0:
         raise ValueError(f"noise must be a finite standard deviation >= 0, got {noise!r}")
+    if not np.isfinite(tolerance) or tolerance < 0:
+        raise ValueError(f"tolerance must be a finite standard deviation >= 0 (mm), got {tolerance!r}")
+    if tolerance > 0 and not verify:
+        raise ValueError("tolerance simulates moved copies of the candidates: it needs verify=True")
+    if isinstance(copies, bool) or not isinstance(copies, (int, np.integer)) or copies < 1:
+        raise ValueError(f"copies must be an integer >= 1, got {copies!r}")
     nets = _load_trained_nets(run_dir) if params is None else params
     if not isinstance(nets, TrainedNets):
         raise TypeError(f"params must be f2f_jax.nets.inference.TrainedNets (or None to load a "
@@ -212,7 +259,13 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
                        "the checkpoint is broken")
     simulated = (simulate_candidates(nets, objects, lefts, rights, feasible, backend, progress,
                            executor=executor) if verify else None)
-    best = rank_candidates(feasible, predicted, simulated)[:, 0]
+    moved = None
+    if verify and tolerance > 0:
+        rng = np.random.default_rng(np.asarray(jax.random.key_data(jax.random.fold_in(key, 1))).ravel())
+        moved = simulate_moved(nets, objects, lefts, rights, feasible, backend,
+                               tolerance / (1000.0 * g.voxel_size), int(copies), rng, progress,
+                               executor=executor)
+    best = rank_candidates(feasible, predicted, simulated, moved)[:, 0]
 
     hopeless = np.nonzero(~feasible.any(axis=1))[0]
     if len(hopeless):
@@ -229,7 +282,8 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
             simulated=None if simulated is None else simulated[b, k].copy(),
             feasible=bool(feasible[b, k]), object=objects[b].copy(), candidate=int(k),
             n_candidates=len(origins), n_feasible=int(feasible[b].sum()), source=nets.source,
-            geometry=g, origin=origins[k]))
+            geometry=g, origin=origins[k], moved=None if moved is None else moved[:, b, k].copy(),
+            tolerance=float(tolerance) if moved is not None else 0.0))
     return pairs[0] if single else pairs
 
 
@@ -252,18 +306,25 @@ def imprint_candidates(objects: np.ndarray,
 
 
 def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
-                    simulated: np.ndarray | None = None) -> np.ndarray:
+                    simulated: np.ndarray | None = None, moved: np.ndarray | None = None) -> np.ndarray:
     """Candidate order per object, best first.
 
-    feasible: [B, K] bool; predicted: [B, K, 11] probabilities; simulated: [B, K, 11] 0/1 or None.
-    Keys, most important first: feasible, simulated trials passed (when given), mean predicted
-    probability, lower candidate index.  Returns [B, K] int indices.
+    feasible: [B, K] bool; predicted: [B, K, 11] probabilities; simulated: [B, K, 11] 0/1 or None;
+    moved: [C, B, K, 11] 0/1 outcomes of C moved copies of each candidate, or None.
+    Keys, most important first: feasible, simulated trials passed (when given; averaged with the
+    moved copies' when those are given), mean predicted probability, lower candidate index.
+    Returns [B, K] int indices.
     """
     feasible = np.asarray(feasible, bool)
     b, k = feasible.shape
     pred = np.asarray(predicted, np.float64).mean(axis=-1)
     sim = (np.zeros((b, k)) if simulated is None
            else np.asarray(simulated, np.float64).sum(axis=-1))
+    if moved is not None:
+        if simulated is None:
+            raise ValueError("moved copies are ranked with the exact pairs' simulated outcomes")
+        moved = np.asarray(moved, np.float64).sum(axis=-1)
+        sim = (sim + moved.sum(axis=0)) / (1 + len(moved))
     index = np.broadcast_to(np.arange(k), (b, k))
     # np.lexsort sorts ascending by the last key first
     return np.lexsort((index, -pred, -sim, ~feasible), axis=-1)
@@ -314,5 +375,24 @@ def simulate_candidates(nets, objects, lefts, rights, feasible, backend, progres
                                cfg=nets.config, progress=progress, object_hulls=hulls,
                                executor=executor)
     return out
+
+
+def simulate_moved(nets, objects, lefts, rights, feasible, backend, sd_voxels: float, copies: int,
+                   rng: np.random.Generator, progress=None, object_hulls=None,
+                   executor: str = "threads") -> np.ndarray:
+    """Simulated outcomes [C, B, K, T] uint8 of C = ``copies`` copies of the feasible candidates,
+    each finger's height map moved by its own smooth field of ``sd_voxels``
+    (``nets.inference.perturbed_heights``, drawn from ``rng``); zeros for infeasible candidates.
+    One ``simulate_candidates`` call per copy, so memory holds one copy at a time."""
+    ib, ik = np.nonzero(feasible)
+    tr = nets.config.geometry.truncation_voxels
+    out = []
+    for _ in range(copies):
+        moved_l, moved_r = lefts.copy(), rights.copy()
+        moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, rng)
+        moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, rng)
+        out.append(simulate_candidates(nets, objects, moved_l, moved_r, feasible, backend, progress,
+                                       object_hulls, executor=executor))
+    return np.stack(out)
 
 

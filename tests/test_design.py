@@ -170,6 +170,14 @@ def test_rank_candidates_keys():
     assert design_module.rank_candidates(feasible, pred).tolist() == [[0, 2, 4, 1, 3]]
     # simulated first, predicted breaks ties, then the index
     assert design_module.rank_candidates(feasible, pred, sim).tolist() == [[2, 4, 1, 0, 3]]
+    # moved copies: the mean over the exact pair and its copies; 1, 2 and 4 pass 5 exactly, 2
+    # none of them moved, so 0 (3 exact, 3 moved) now ranks above 2: (5 + 0 + 0) / 3 < 3
+    moved = np.zeros((2, 1, 5, 11), np.uint8)
+    for k, passed in enumerate([3, 5, 0, 11, 5]):
+        moved[:, 0, k, :passed] = 1
+    assert design_module.rank_candidates(feasible, pred, sim, moved).tolist() == [[4, 1, 0, 2, 3]]
+    with pytest.raises(ValueError, match="exact"):
+        design_module.rank_candidates(feasible, pred, None, moved)
 
 
 def test_design_batch_returns_list(models, sphere_tsdf, box_tsdf):
@@ -301,6 +309,60 @@ def test_verified_pool_holds_the_imprints_and_never_loses_to_them(models, sphere
                                 imprint=True).n_candidates == 5
 
 
+def test_tolerance_picks_the_design_whose_outcome_survives_printing(models, sphere_tsdf, monkeypatch):
+    """A knife-edge candidate passes all 11 trials exactly as designed and none once its fingers
+    move by a printer's error; a steady one passes 10 either way.  Verified on the exact pairs the
+    knife edge wins; with ``tolerance`` the copies really are moved (by about the asked amount,
+    the same copies for the same key) and the steady design wins, on its mean."""
+    from f2f_jax.nets.generator import tsdf_heights
+
+    knife, _ = wsg50_fingers(width=0.02, depth=0.03)
+    steady, _ = wsg50_fingers(width=0.04, depth=0.04)
+    monkeypatch.setattr(design_module, "propose", _propose_from(np.stack([knife, steady])))
+    seen = []
+
+    def simulate(nets, objects, lefts, rights, feasible, backend, progress=None, object_hulls=None,
+                 executor="threads"):
+        out = np.zeros(feasible.shape + (11,), np.uint8)
+        for (b, k), f in zip(np.ndindex(feasible.shape), lefts.reshape(-1, R, R, R)):
+            narrow = abs(int((f < 0).sum()) - int((knife < 0).sum())) < 0.1 * (knife < 0).sum()
+            out[b, k, :11 if np.array_equal(f, knife) else 0 if narrow else 10] = 1
+        seen.append(np.asarray(tsdf_heights(lefts.reshape(-1, R, R, R))))
+        return out
+
+    monkeypatch.setattr(design_module, "simulate_candidates", simulate)
+    exact = design_module.design(sphere_tsdf, params=models, candidates=2, verify=True, imprint=False)
+    assert exact.candidate == 0 and exact.simulated.sum() == 11 and exact.moved is None
+    assert exact.simulated_mean == 11 and exact.scores()["moved_passed"] is None
+
+    seen.clear()
+    pair = design_module.design(sphere_tsdf, params=models, candidates=2, verify=True,
+                                imprint=False, tolerance=0.15, copies=2, key=3)
+    assert len(seen) == 3  # the exact pairs, then one call per copy
+    solid = seen[0] > 0
+    for copy in seen[1:]:  # 0.15 mm = 0.1 voxel: every column moves, by about that much
+        change = np.abs(copy - seen[0])[solid]
+        assert change.min() > 0 and 0.025 < change.mean() < 0.1 and change.max() < 0.5
+        assert np.all(copy[~solid] == 0)
+    assert not np.array_equal(seen[1], seen[2])  # each copy its own field
+    assert pair.candidate == 1 and pair.simulated.sum() == 10 and pair.tolerance == 0.15
+    assert pair.moved.shape == (2, 11) and pair.moved.dtype == np.uint8 and pair.simulated_mean == 10
+    scores = pair.scores()
+    assert scores["moved_passed"] == [10, 10] and scores["tolerance_mm"] == 0.15
+    assert "2 copies moved by 0.15 mm" in str(pair)
+    assert [line.split()[-1] for line in str(pair).splitlines() if line.split()[0] == "outcome"] == ["moved"]
+    first = [s.copy() for s in seen[1:]]
+    seen.clear()
+    design_module.design(sphere_tsdf, params=models, candidates=2, verify=True, imprint=False,
+                         tolerance=0.15, copies=2, key=3)
+    np.testing.assert_array_equal(np.stack(seen[1:]), np.stack(first))  # seeded by the key
+    with pytest.raises(ValueError, match="verify"):
+        design_module.design(sphere_tsdf, params=models, tolerance=0.15)
+    for bad in ({"tolerance": -0.1}, {"tolerance": float("nan")}, {"copies": 0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            design_module.design(sphere_tsdf, params=models, verify=True, **bad)
+
+
 def test_imprint_variants_fit_looser_and_tighter(sphere_tsdf):
     lefts, rights = design_module.imprint_candidates(sphere_tsdf[None])
     assert lefts.shape == rights.shape == (1, len(design_module.IMPRINT_VARIANTS), R, R, R)
@@ -325,6 +387,14 @@ def test_cli_bad_inputs_write_nothing(sphere_stl, tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.startswith("f2f-design: error:") and len(err.splitlines()) == 1
         assert str(mesh) in err
+    # --tolerance: only with --verify, never negative; --copies >= 1 (refused before any work)
+    for flags, match in [(["--no-verify", "--tolerance", "0.15"], "needs --verify"),
+                         (["--tolerance", "-1"], "--tolerance must be"),
+                         (["--tolerance", "nan"], "--tolerance must be"),
+                         (["--tolerance", "0.15", "--copies", "0"], "--copies must be")]:
+        out = tmp_path / "out_tol"
+        assert design_main([str(sphere_stl), "--out", str(out), *flags]) == 2
+        assert match in capsys.readouterr().err and not out.exists()
     # no checkpoint in the run directory
     out = tmp_path / "out_ckpt"
     assert design_main([str(sphere_stl), "--out", str(out), "--run-dir", str(tmp_path / "run")]) == 2

@@ -5,7 +5,8 @@
     DIR/left.stl, DIR/right.stl   fingers with their mount plates, watertight, millimetres
     DIR/design.png                the object held by the fingers, three views, outcome boxes
     DIR/scores.json               predicted (and simulated) outcome per trial name, feasibility,
-                                  the checkpoint and the input file
+                                  the checkpoint and the input file; with --tolerance MM the
+                                  trials passed by each moved copy and their mean
 
 Everything is written into a hidden sibling directory first and renamed to DIR at the end, so a
 failure leaves nothing behind.  Errors (missing or unreadable mesh, no checkpoint, a volume that
@@ -47,7 +48,16 @@ def _design_parser() -> argparse.ArgumentParser:
     p.add_argument("--imprint", action=argparse.BooleanOptionalAction, default=None,
                    help="also rank the object's imprint pair and two variants of it, so a verified "
                         "pick never passes fewer trials than imprints (default: with --verify)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the candidates' latent noise")
+    p.add_argument("--tolerance", type=float, default=0.0, metavar="MM",
+                   help="with --verify, also simulate --copies copies of every candidate with both "
+                        "fingers moved by a smooth random field of this standard deviation in mm (a "
+                        "printer's error: 0.3 moves the fingers' surface ~0.15 mm on average) and "
+                        "rank by the mean over them; costs 1 + copies times the simulation "
+                        "(default 0: off)")
+    p.add_argument("--copies", type=int, default=3, help="moved copies per candidate with "
+                   "--tolerance (default 3)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the candidates' latent noise (and "
+                   "of the moved copies' fields)")
     p.add_argument("--backend", choices=list(BACKENDS), default="mujoco",
                    help="simulator for --verify (default mujoco, on CPU threads)")
     # as sim.ray_executor.add_cli_arguments, which would import the simulator before the checks
@@ -81,6 +91,12 @@ def main(argv: list[str] | None = None) -> int:
         return int(exc.code or 0)
     if args.candidates < 1:
         return _fail(f"--candidates must be >= 1, got {args.candidates}")
+    if not args.tolerance >= 0 or args.tolerance == float("inf"):
+        return _fail(f"--tolerance must be a finite standard deviation >= 0 (mm), got {args.tolerance}")
+    if args.tolerance > 0 and not args.verify:
+        return _fail("--tolerance simulates moved copies of the candidates: it needs --verify")
+    if args.copies < 1:
+        return _fail(f"--copies must be >= 1, got {args.copies}")
     if args.xla_threads < 0:
         return _fail(f"--xla-threads must be >= 0, got {args.xla_threads}")
     out: Path = args.out
@@ -125,7 +141,7 @@ def _run_design(args) -> int:
         pair = design_module.design(obj, params=nets, key=jax.random.key(args.seed),
                                     candidates=args.candidates, verify=args.verify,
                                     backend=args.backend, imprint=args.imprint,
-                                    executor=executor)
+                                    executor=executor, tolerance=args.tolerance, copies=args.copies)
     if not pair.feasible:
         return _fail(f"no feasible finger pair among {pair.n_candidates} candidates for {args.mesh} "
                      f"(best predicted mean {pair.predicted_mean:.2f}); try more --candidates or "
