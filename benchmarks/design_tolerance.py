@@ -38,8 +38,8 @@ def pick_table(picks: dict[str, np.ndarray], reported: dict[str, np.ndarray],
                fresh: dict[str, np.ndarray], *, base: str, imprint: str, seed: int = 0) -> dict:
     """Per pick: trials as reported, on fresh copies (``fresh``), objects picked as ``base`` picks,
     and the paired gains on fresh copies over ``base`` and ``imprint``: [mean, 95% interval low,
-    high] (``tables.stats.paired_gain``, objects resampled).  picks: name -> [N] candidate index; reported: name ->
-    [N] trials when picked; fresh: name -> [N, J, 11] outcomes on fresh copies."""
+    high] (``tables.stats.paired_gain``, objects resampled).  picks: name -> [N] candidate index;
+    reported: name -> [N] trials when picked; fresh: name -> [N, J, 11] outcomes on fresh copies."""
     from f2f_jax.tables.stats import paired_gain
 
     out = {}

@@ -26,9 +26,9 @@ How a design is chosen, per object:
    copies: both fingers' height maps moved by a smooth random field of that standard deviation
    (``nets.inference.perturbed_heights``), a printer's error.  One trial of a design turns on
    tenths of a millimetre of finger (``benchmarks/sim_retest.py --perturb heights``: a field of
-   0.15 mm flips 5% of trials), so a pick by its exact outcome alone is partly luck; a pick by its mean
-   over the copies is one whose outcome survives printing, and ``FingerPair.simulated_mean``
-   says what to expect of the printed fingers.
+   0.15 mm flips 5% of trials), so a pick by its exact outcome alone is partly luck; a pick by
+   its mean over the copies is one whose outcome survives printing, and
+   ``FingerPair.simulated_mean`` says what to expect of the printed fingers.
 5. Ranking: feasible first, then the simulated outcome (number of the 11 trials passed, when
    verified; with ``tolerance``, its mean over the exact design and its moved copies), then the
    mean predicted probability, then the candidate index (the generator's own output wins full
@@ -81,8 +81,9 @@ class FingerPair:
     origin: where the candidate came from: "generator" (its own output), "generator + latent
         noise" ("generator + height noise" for a height-map generator), or one of the
         ``IMPRINT_VARIANTS`` ("imprint", ...).
-    moved: [C, 11] uint8 simulated outcomes of C copies of the pair with both fingers moved by
-        ``tolerance`` millimetres (``design(..., tolerance=...)``), or None.
+    moved: [C, 11] uint8 simulated outcomes of C copies of the pair with both fingers moved by a
+        smooth field of standard deviation ``tolerance`` (mm; ``design(..., tolerance=...)``), or
+        None (tolerance 0).
     """
 
     left: np.ndarray
@@ -172,7 +173,8 @@ class FingerPair:
         if self.source:
             lines.append(f"  nets: {self.source}")
         moved = self.moved is not None
-        lines.append(f"  {'outcome':<8}{'predicted':>10}{'simulated':>10}" + (f"{'moved':>8}" if moved else ""))
+        header = f"  {'outcome':<8}{'predicted':>10}{'simulated':>10}"
+        lines.append(header + (f"{'moved':>8}" if moved else ""))
         for i, name in enumerate(TRIAL_NAMES):
             sim = "-" if self.simulated is None else str(int(self.simulated[i]))
             row = f"  {name:<8}{self.predicted[i]:>10.3f}{sim:>10}"
@@ -394,5 +396,3 @@ def simulate_moved(nets, objects, lefts, rights, feasible, backend, sd_voxels: f
         out.append(simulate_candidates(nets, objects, moved_l, moved_r, feasible, backend, progress,
                                        object_hulls, executor=executor))
     return np.stack(out)
-
-

@@ -21,7 +21,8 @@ def test_pick_table_pairs_each_pick_with_the_base_and_imprint_on_fresh_copies():
              "imprint": _outcomes([[8, 8], [8, 8], [8, 8]])}
     table = bench.pick_table(picks, reported, fresh, base="exact", imprint="imprint")
     assert table["exact"]["reported"] == pytest.approx(32 / 3)
-    assert table["exact"]["fresh"] == pytest.approx(44 / 6) and table["moved"]["fresh"] == pytest.approx(28 / 3)
+    assert table["exact"]["fresh"] == pytest.approx(44 / 6)
+    assert table["moved"]["fresh"] == pytest.approx(28 / 3)
     gain = table["moved"]["gain_over_base"]  # +0, +6, +0 trials per object
     assert gain[0] == pytest.approx(2.0) and 0 <= gain[1] <= gain[0] <= gain[2] <= 6
     assert table["moved"]["gain_over_imprint"][0] == pytest.approx(28 / 3 - 8)
