@@ -270,10 +270,44 @@ def test_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys):
     (tmp_path / "objects").mkdir()
     (tmp_path / "objects" / "source.json").write_text('{"source": "builtin", "n": 8, "seed": 3}')
     assert cli.main(["--run-dir", str(tmp_path), "--fresh", "4", "--seed", "3"]) == 2
+    for flags in (["--printed", "0"], ["--printed", "-0.3"], ["--printed", "inf"],
+                  ["--printed", "0.3", "--printed-copies", "0"], ["--printed", "0.3", "--tables", "2"]):
+        assert cli.main(flags) == 2
     err = capsys.readouterr().err
+    assert "--printed MM needs a finite MM > 0" in err and "--printed-copies J needs J >= 1" in err
+    assert "add 1 to --tables" in err
     assert "--tables '3'" in err and "NAME=RUN_DIR" in err and "no object set" in err
     assert "would not be new" in err and "--checkpoint DIR needs --run-dir" in err
     assert "no checkpoints/ directory" in err
+
+
+def test_printed_table_scores_every_row_on_the_same_moved_fingers(tmp_path, monkeypatch):
+    """--printed: Table 1 again with both fingers of every row moved by a printer's error, two
+    copies per object; imprints moved by ~0.15 mm still hold what flat pads drop, and the same
+    command again simulates nothing (the moved outcomes are kept steps)."""
+    import json
+
+    from f2f_jax import sim
+    from f2f_jax.cli import evaluate as cli
+
+    monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path / "cache"))
+    out = tmp_path / "eval"
+    argv = ["--config", "tiny", "--objects", "2", "--tables", "1", "--printed", "0.3",
+            "--printed-copies", "2", "--out", str(out), "--quiet"]
+    assert cli.main(argv) == 0
+    results = json.loads((out / "results.json").read_text())
+    printed = results["table1_printed"]
+    assert printed["tolerance_mm"] == 0.3 and printed["copies"] == 2
+    assert set(printed["values"]) == set(results["table1"]["values"]) >= {"Flat pads", "Imprint"}
+    assert printed["values"]["Imprint"]["grasp"] > printed["values"]["Flat pads"]["grasp"]
+    text = (out / "table1_printed.md").read_text()
+    assert "as printed" in text and "2 objects x 2 moved copies" in text
+    calls = []
+    real = sim.evaluate
+    monkeypatch.setattr(sim, "evaluate", lambda *a, **kw: (calls.append(len(a[0])), real(*a, **kw))[1])
+    assert cli.main(argv) == 0 and calls == []
+    again = json.loads((out / "results.json").read_text())["table1_printed"]
+    assert again["values"] == printed["values"]
 
 
 def test_ranking_stats_tell_a_fitness_net_that_ranks_from_one_that_ranks_backwards():

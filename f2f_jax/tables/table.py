@@ -68,6 +68,7 @@ class Table:
     design_seconds: dict[str, float] = field(default_factory=dict)
     sim_seconds: float = 0.0
     notes: list[str] = field(default_factory=list)
+    title: str = ""  # the markdown heading; "" for the kind's (TITLES)
 
     def row_names(self) -> list[str]:
         """The paper's rows in the paper's order, then our rows that are not in the paper."""
@@ -78,7 +79,7 @@ class Table:
     def to_markdown(self) -> str:
         """A markdown table: per designer an "ours" line and a "paper" line ("not run" where we
         did not evaluate the row, "not in paper" for our extra rows)."""
-        title = TITLES[self.kind]
+        title = self.title or TITLES[self.kind]
         head = ["designer", "source", *column_headers(self.kind, self.columns), "feasible", "objects"]
         lines = [f"### {title}", "", "| " + " | ".join(head) + " |",
                  "|" + "|".join(["---"] * 2 + ["---:"] * (len(head) - 2)) + "|"]
@@ -320,7 +321,8 @@ def _counting_note() -> str:
 
 def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | None = None, *,
            backend: str = "mujoco", progress: bool = True, object_hulls=None,
-           cache_dir=None, executor: str = "threads", store=None, made: dict | None = None) -> Table:
+           cache_dir=None, executor: str = "threads", store=None, made: dict | None = None,
+           step: str = "table1", title: str = "") -> Table:
     """The paper's Table 1 for our designers on ``objects`` [N, 40, 40, 40].
 
     designers: {row name: designer or precomputed Design}; rows named as in the paper
@@ -332,20 +334,23 @@ def table1(designers: Mapping[str, Designer | Design], objects, cfg: Config | No
     object_hulls / cache_dir / executor: as in ``sim.evaluate``; backend: "mujoco", "mjx" or "warp".
     store: a ``tables.steps.StepStore`` keeping each row's outcomes as it finishes (resumable
     evaluations; None: one simulation call over all rows); made: {name: Design} made earlier in
-    this process, reused and filled in (so Table 2 designs no row twice).
+    this process, reused and filled in (so Table 2 designs no row twice).  step: the store's name
+    for these outcomes (another for the same rows on other objects or fingers); title: the
+    markdown heading ("": Table 1's).
     """
     cfg = cfg or default()
     objs, hulls, notes = prepare_objects(objects, cfg, object_hulls=object_hulls,
                                          cache_dir=cache_dir, progress=progress)
     outcomes, feasible, seconds, failed, design_seconds = _simulate_designs(
-        designers, objs, hulls, cfg, backend, progress, executor=executor, store=store, made=made)
+        designers, objs, hulls, cfg, backend, progress, executor=executor, store=store, made=made,
+        step=step)
     if failed:
         notes.append(f"{failed} candidate(s) could not be simulated (model build errors): scored 0")
     notes.append(_counting_note())
     return Table(kind="table1", columns=figures.TABLE1_COLUMNS,
                  values={k: table1_values(v) for k, v in outcomes.items()}, feasible=feasible,
                  outcomes=outcomes, n_objects=len(objs), paper=figures.PAPER_TABLE1,
-                 design_seconds=design_seconds, sim_seconds=seconds, notes=notes)
+                 design_seconds=design_seconds, sim_seconds=seconds, notes=notes, title=title)
 
 
 def position_offsets(n: int, condition: figures.Condition, seed: int = 0) -> np.ndarray | None:
