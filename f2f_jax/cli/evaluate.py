@@ -410,8 +410,9 @@ def _printed_table1(args, designers, made: dict, objs, hulls, cfg, kw) -> E.Tabl
     def moved(name):
         def designer(_objects):  # the table's objects are objs repeated j times
             base = made.get(name) or E.make_designs({name: designers[name]}, objs, progress=False)[name]
-            lefts = [perturbed_heights(base.lefts, sd, g.truncation_voxels, grid=grids[c, 0]) for c in range(j)]
-            rights = [perturbed_heights(base.rights, sd, g.truncation_voxels, grid=grids[c, 1]) for c in range(j)]
+            tr = g.truncation_voxels
+            lefts = [perturbed_heights(base.lefts, sd, tr, grid=grids[c, 0]) for c in range(j)]
+            rights = [perturbed_heights(base.rights, sd, tr, grid=grids[c, 1]) for c in range(j)]
             return E.Design(np.concatenate(lefts), np.concatenate(rights), base.seconds)
         return designer
 
