@@ -178,7 +178,7 @@ def _check(args) -> tuple[str | None, list[int], list[tuple[str, Path]]]:
         (args.printed is not None and not 0 < args.printed < float("inf"),
          "--printed MM needs a finite MM > 0 (the moving field's standard deviation, mm)"),
         (args.printed is not None and args.printed_copies < 1, "--printed-copies J needs J >= 1"),
-        (args.printed is not None and "1" not in args.tables.split(","),
+        (args.printed is not None and 1 not in tables,
          "--printed rescores Table 1's rows: add 1 to --tables"),
         (args.fresh is not None and (args.fresh < 1 or not args.run_dir),
          "--fresh N needs N >= 1 and --run-dir"),
