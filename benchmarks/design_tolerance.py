@@ -74,9 +74,16 @@ def main(argv=None) -> int:
 
     from f2f_jax import sim
     from f2f_jax.data import builtin_objects, held_out_objects
-    from f2f_jax.designer import imprint_candidates, rank_candidates, simulate_candidates, simulate_moved
+    from f2f_jax.designer import (
+        imprint_candidates,
+        printed_copies,
+        rank_candidates,
+        simulate_candidates,
+        simulate_moved,
+        tolerance_voxels,
+    )
     from f2f_jax.geometry import mesh_to_tsdf, postprocess
-    from f2f_jax.nets.inference import HEIGHT_NOISE_GRID, perturbed_heights, predict, propose
+    from f2f_jax.nets.inference import predict, propose
     from f2f_jax.train.checkpoint import load_trained_nets
 
     nets = load_trained_nets(args.run_dir)
@@ -92,7 +99,7 @@ def main(argv=None) -> int:
     lefts, rights = np.concatenate([lefts, il], 1), np.concatenate([rights, ir], 1)
     feasible = postprocess(lefts, rights, g)
     predicted = predict(nets, objs, lefts, rights)
-    sd = args.tolerance / (1000.0 * g.voxel_size)
+    sd = tolerance_voxels(args.tolerance, g)
     print(f"{n} objects x {lefts.shape[1]} candidates ({int(feasible.sum())} feasible), "
           f"{args.copies} copies moved by {args.tolerance} mm = {sd:.3f} voxels", flush=True)
     t0 = time.time()
@@ -111,17 +118,12 @@ def main(argv=None) -> int:
                 for name, ks in picks.items()}
 
     # fresh copies: one field per object, copy and side, shared by every pick (paired)
-    rng = np.random.default_rng([args.seed, 2])
-    grids = rng.standard_normal((args.fresh_copies, 2, n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
-    tr = g.truncation_voxels
+    j = args.fresh_copies
     fresh = {}
     for name, ks in picks.items():
-        out = []
-        for j in range(args.fresh_copies):
-            ml = perturbed_heights(lefts[rows, ks], sd, tr, grid=grids[j, 0])
-            mr = perturbed_heights(rights[rows, ks], sd, tr, grid=grids[j, 1])
-            out.append(sim.evaluate(objs, ml, mr, cfg=cfg, progress=False))
-        fresh[name] = np.stack(out, 1)
+        ml, mr = printed_copies(lefts[rows, ks], rights[rows, ks], args.tolerance, g, j, [args.seed, 2])
+        out = sim.evaluate(np.concatenate([objs] * j), ml, mr, cfg=cfg, progress=False)
+        fresh[name] = out.reshape(j, n, -1).transpose(1, 0, 2)  # [N, J, 11]
         print(f"  {name}: {len(ks)} picks x {args.fresh_copies} fresh copies simulated", flush=True)
     table = pick_table(picks, reported, fresh, base="exact outcome", imprint="imprint")
     print(f"\n{'pick by':<36}{'reported':>9}{'fresh':>7}  {'minus exact-outcome pick':<26}"

@@ -52,7 +52,15 @@ from f2f_jax.config import BACKENDS, TRIAL_NAMES, GeometryConfig
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import check_tsdf, export_finger_stl, imprint_fingers, postprocess
 from f2f_jax.nets import RESOLUTION
-from f2f_jax.nets.inference import LATENT_NOISE, TrainedNets, as_key, perturbed_heights, predict, propose
+from f2f_jax.nets.inference import (
+    HEIGHT_NOISE_GRID,
+    LATENT_NOISE,
+    TrainedNets,
+    as_key,
+    perturbed_heights,
+    predict,
+    propose,
+)
 
 # The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
 # Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
@@ -265,7 +273,7 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
     if verify and tolerance > 0:
         rng = np.random.default_rng(np.asarray(jax.random.key_data(jax.random.fold_in(key, 1))).ravel())
         moved = simulate_moved(nets, objects, lefts, rights, feasible, backend,
-                               tolerance / (1000.0 * g.voxel_size), int(copies), rng, progress,
+                               tolerance_voxels(tolerance, g), int(copies), rng, progress,
                                executor=executor)
     best = rank_candidates(feasible, predicted, simulated, moved)[:, 0]
 
@@ -305,6 +313,25 @@ def imprint_candidates(objects: np.ndarray,
     lefts = np.array([[left for left, _ in row] for row in pairs], np.float32)
     rights = np.array([[right for _, right in row] for row in pairs], np.float32)
     return lefts, rights
+
+
+def tolerance_voxels(tolerance_mm: float, geometry: GeometryConfig) -> float:
+    """A printer's tolerance in millimetres -> the moving field's standard deviation in voxels."""
+    return tolerance_mm / (1000.0 * geometry.voxel_size)
+
+
+def printed_copies(lefts: np.ndarray, rights: np.ndarray, tolerance_mm: float,
+                   geometry: GeometryConfig, copies: int, seed) -> tuple[np.ndarray, np.ndarray]:
+    """Fingers [N, R, R, R] -> ``copies`` moved copies of them, [copies x N, R, R, R] copy-major
+    (``perturbed_heights`` with fields of ``tolerance_mm``).  The fields depend only on ``seed``
+    (any numpy seed), the copy, the side and the object's index: called with the same seed, the
+    designs of every row of a table on the same N objects are moved alike (paired)."""
+    n = len(lefts)
+    grids = np.random.default_rng(seed).standard_normal(
+        (copies, 2, n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
+    sd, tr = tolerance_voxels(tolerance_mm, geometry), geometry.truncation_voxels
+    return (np.concatenate([perturbed_heights(lefts, sd, tr, grid=grids[c, 0]) for c in range(copies)]),
+            np.concatenate([perturbed_heights(rights, sd, tr, grid=grids[c, 1]) for c in range(copies)]))
 
 
 def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,

@@ -363,6 +363,27 @@ def test_tolerance_picks_the_design_whose_outcome_survives_printing(models, sphe
             design_module.design(sphere_tsdf, params=models, verify=True, **bad)
 
 
+def test_printed_copies_move_every_design_set_alike_for_one_seed(sphere_tsdf):
+    """``printed_copies``: copy-major [copies x N], each copy moved (0.3 mm: 0.2 voxel), and the
+    fields depend on the seed, copy, side and object index only, so two rows that share a design
+    of an object get identical copies of it (the pairing of ``evaluate.py --printed``)."""
+    wide, _ = wsg50_fingers(width=0.04, depth=0.04)
+    left, right = imprint_fingers(sphere_tsdf)
+    row_a = np.stack([left, wide]), np.stack([right, wide])
+    row_b = np.stack([left, left]), np.stack([right, right])
+    a = design_module.printed_copies(*row_a, 0.3, config.GeometryConfig(), 3, [7, 3])
+    b = design_module.printed_copies(*row_b, 0.3, config.GeometryConfig(), 3, [7, 3])
+    assert a[0].shape == a[1].shape == (6, R, R, R)
+    for c in range(3):  # object 0 holds the same pair in both rows: the same moved copies
+        np.testing.assert_array_equal(a[0][2 * c], b[0][2 * c])
+        np.testing.assert_array_equal(a[1][2 * c], b[1][2 * c])
+        assert not np.array_equal(a[0][2 * c], left)  # and it did move
+    assert not np.array_equal(a[0][0], a[0][2])  # each copy its own field
+    other = design_module.printed_copies(*row_a, 0.3, config.GeometryConfig(), 3, [8, 3])
+    assert not np.array_equal(other[0][0], a[0][0])
+    assert design_module.tolerance_voxels(0.3, config.GeometryConfig()) == pytest.approx(0.2)
+
+
 def test_imprint_variants_fit_looser_and_tighter(sphere_tsdf):
     lefts, rights = design_module.imprint_candidates(sphere_tsdf[None])
     assert lefts.shape == rights.shape == (1, len(design_module.IMPRINT_VARIANTS), R, R, R)

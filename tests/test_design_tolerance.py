@@ -4,21 +4,16 @@ import numpy as np
 import pytest
 
 import benchmarks.design_tolerance as bench
-
-
-def _outcomes(trials_per_copy):
-    """[N, J] trials passed -> [N, J, 11] 0/1 outcomes passing the first ones."""
-    t = np.asarray(trials_per_copy)
-    return (np.arange(11) < t[..., None]).astype(np.uint8)
+from tests.test_sim_retest import _outcomes  # [N, J] trials passed -> [N, J, 11] outcomes
 
 
 def test_pick_table_pairs_each_pick_with_the_base_and_imprint_on_fresh_copies():
     picks = {"exact": np.array([0, 1, 2]), "moved": np.array([0, 3, 2]), "imprint": np.array([4, 4, 4])}
     reported = {"exact": np.array([11, 11, 10]), "moved": np.array([10.5, 10.0, 9.5]),
                 "imprint": np.array([8, 8, 8])}
-    fresh = {"exact": _outcomes([[9, 9], [2, 4], [10, 10]]),   # object 1's exact pick was luck
-             "moved": _outcomes([[9, 9], [9, 9], [10, 10]]),
-             "imprint": _outcomes([[8, 8], [8, 8], [8, 8]])}
+    fresh = {"exact": _outcomes(np.array([[9, 9], [2, 4], [10, 10]])),   # object 1's was luck
+             "moved": _outcomes(np.array([[9, 9], [9, 9], [10, 10]])),
+             "imprint": _outcomes(np.array([[8, 8], [8, 8], [8, 8]]))}
     table = bench.pick_table(picks, reported, fresh, base="exact", imprint="imprint")
     assert table["exact"]["reported"] == pytest.approx(32 / 3)
     assert table["exact"]["fresh"] == pytest.approx(44 / 6)

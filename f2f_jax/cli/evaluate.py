@@ -61,7 +61,7 @@ from f2f_jax import config
 from f2f_jax import tables as E
 from f2f_jax.cli import reproducible
 from f2f_jax.data import builtin_objects, held_out_objects
-from f2f_jax.designer import design
+from f2f_jax.designer import design, printed_copies
 from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import mesh_to_tsdf
@@ -398,22 +398,16 @@ def _printed_table1(args, designers, made: dict, objs, hulls, cfg, kw) -> E.Tabl
     """Table 1 of the same rows with both fingers of every design moved by a smooth field of
     ``args.printed`` mm (``nets.inference.perturbed_heights``), ``args.printed_copies`` copies per
     object; copy j of object i is moved by the same fields in every row (paired), drawn from
-    --seed.  A row's designs are taken from this process (``made``) or its designer (stored);
-    rows whose moved outcomes an earlier call saved are not designed at all."""
-    from f2f_jax.nets.inference import HEIGHT_NOISE_GRID, perturbed_heights
-
-    j, n, g = args.printed_copies, len(objs), cfg.geometry
-    sd = args.printed / (1000.0 * g.voxel_size)
-    grids = np.random.default_rng([args.seed, 3]).standard_normal(
-        (j, 2, n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
+    --seed (``designer.printed_copies``).  A row's designs are taken from this process (``made``)
+    or its designer (stored); rows whose moved outcomes an earlier call saved are not designed."""
+    j, n = args.printed_copies, len(objs)
 
     def moved(name):
         def designer(_objects):  # the table's objects are objs repeated j times
             base = made.get(name) or E.make_designs({name: designers[name]}, objs, progress=False)[name]
-            tr = g.truncation_voxels
-            lefts = [perturbed_heights(base.lefts, sd, tr, grid=grids[c, 0]) for c in range(j)]
-            rights = [perturbed_heights(base.rights, sd, tr, grid=grids[c, 1]) for c in range(j)]
-            return E.Design(np.concatenate(lefts), np.concatenate(rights), base.seconds)
+            lefts, rights = printed_copies(base.lefts, base.rights, args.printed, cfg.geometry, j,
+                                           [args.seed, 3])
+            return E.Design(lefts, rights, base.seconds)
         return designer
 
     title = (f"Table 1 as printed: both fingers moved by a smooth field of {args.printed:g} mm, "
