@@ -24,7 +24,8 @@ How a design is chosen, per object:
    without ``verify`` too.  ``FingerPair.origin`` says where the pick came from.
    With ``tolerance`` (millimetres) each feasible candidate is also simulated as ``copies`` moved
    copies: both fingers' height maps moved by a smooth random field of that standard deviation
-   (``nets.inference.perturbed_heights``), a printer's error.  One trial of a design turns on
+   (``nets.inference.perturbed_heights``), a printer's error, the same fields for all of one
+   object's candidates (they are compared under the same errors).  One trial of a design turns on
    tenths of a millimetre of finger (``benchmarks/sim_retest.py --perturb heights``: a field of
    0.15 mm flips 5% of trials), so a pick by its exact outcome alone is partly luck; a pick by
    its mean over the copies is one whose outcome survives printing, and
@@ -224,7 +225,8 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         millimetres at its 5 x 5 grid points over the mount (a column moves by about half of it
         on average: 0.3 moves them ~0.15 mm; 0, the default: no copies), and rank by the mean over
         the exact pair and its copies; costs 1 + copies times the simulation.  The copies' fields
-        are drawn from ``key``.  ``benchmarks/design_tolerance.py`` measures what it buys.
+        are drawn from ``key``, one per copy, object and side, shared by the object's candidates.
+        ``benchmarks/design_tolerance.py`` measures what it buys.
 
     Raises VolumeError for a wrong shape, NaN/inf values or an empty or all-inside volume (naming
     the batch index), ValueError for bad options, CheckpointError (an F2FError) when params is
@@ -274,7 +276,7 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         rng = np.random.default_rng(np.asarray(jax.random.key_data(jax.random.fold_in(key, 1))).ravel())
         moved = simulate_moved(nets, objects, lefts, rights, feasible, backend,
                                tolerance_voxels(tolerance, g), int(copies), rng, progress,
-                               executor=executor)
+                               executor=executor, shared=True)
     best = rank_candidates(feasible, predicted, simulated, moved)[:, 0]
 
     hopeless = np.nonzero(~feasible.any(axis=1))[0]
@@ -408,18 +410,26 @@ def simulate_candidates(nets, objects, lefts, rights, feasible, backend, progres
 
 def simulate_moved(nets, objects, lefts, rights, feasible, backend, sd_voxels: float, copies: int,
                    rng: np.random.Generator, progress=None, object_hulls=None,
-                   executor: str = "threads") -> np.ndarray:
+                   executor: str = "threads", shared: bool = False) -> np.ndarray:
     """Simulated outcomes [C, B, K, T] uint8 of C = ``copies`` copies of the feasible candidates,
-    each finger's height map moved by its own smooth field of ``sd_voxels``
+    each finger's height map moved by a smooth field of ``sd_voxels``
     (``nets.inference.perturbed_heights``, drawn from ``rng``); zeros for infeasible candidates.
-    One ``simulate_candidates`` call per copy, so memory holds one copy at a time."""
+    shared=False: every finger its own field; True: one field per copy, object and side, the same
+    for all of that object's candidates (common random numbers: candidates are compared under the
+    same printing error).  One ``simulate_candidates`` call per copy, so memory holds one copy at
+    a time."""
     ib, ik = np.nonzero(feasible)
     tr = nets.config.geometry.truncation_voxels
     out = []
     for _ in range(copies):
         moved_l, moved_r = lefts.copy(), rights.copy()
-        moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, rng)
-        moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, rng)
+        if shared:
+            grids = rng.standard_normal((len(objects), 2, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
+            moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, grid=grids[ib, 0])
+            moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, grid=grids[ib, 1])
+        else:
+            moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, rng)
+            moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, rng)
         out.append(simulate_candidates(nets, objects, moved_l, moved_r, feasible, backend, progress,
                                        object_hulls, executor=executor))
     return np.stack(out)

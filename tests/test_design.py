@@ -345,6 +345,8 @@ def test_tolerance_picks_the_design_whose_outcome_survives_printing(models, sphe
         assert change.min() > 0 and 0.025 < change.mean() < 0.1 and change.max() < 0.5
         assert np.all(copy[~solid] == 0)
     assert not np.array_equal(seen[1], seen[2])  # each copy its own field
+    both = solid[0] & solid[1]  # the two candidates moved by the same field (shared by the object)
+    np.testing.assert_allclose((seen[1] - seen[0])[0][both], (seen[1] - seen[0])[1][both], atol=1e-3)
     assert pair.candidate == 1 and pair.simulated.sum() == 10 and pair.tolerance == 0.15
     assert pair.moved.shape == (2, 11) and pair.moved.dtype == np.uint8 and pair.simulated_mean == 10
     scores = pair.scores()
@@ -382,6 +384,41 @@ def test_printed_copies_move_every_design_set_alike_for_one_seed(sphere_tsdf):
     other = design_module.printed_copies(*row_a, 0.3, config.GeometryConfig(), 3, [8, 3])
     assert not np.array_equal(other[0][0], a[0][0])
     assert design_module.tolerance_voxels(0.3, config.GeometryConfig()) == pytest.approx(0.2)
+
+
+def test_simulate_moved_shares_fields_across_an_objects_candidates(models, sphere_tsdf, monkeypatch):
+    """shared=True moves two equal candidates of one object alike in each copy (common random
+    numbers: candidates compared under the same printing error), a second object and each copy
+    by other fields, and leaves infeasible candidates alone; shared=False moves every finger by
+    its own field."""
+    left, right = imprint_fingers(sphere_tsdf)
+    lefts = np.broadcast_to(left, (2, 3, R, R, R)).copy()
+    rights = np.broadcast_to(right, (2, 3, R, R, R)).copy()
+    feasible = np.array([[True, True, False], [True, True, True]])
+    seen = []
+
+    def simulate(nets, objects, ls, rs, feas, backend, progress=None, object_hulls=None,
+                 executor="threads"):
+        seen.append((ls.copy(), rs.copy()))
+        return np.zeros(feas.shape + (11,), np.uint8)
+
+    monkeypatch.setattr(design_module, "simulate_candidates", simulate)
+    objects = np.stack([sphere_tsdf, sphere_tsdf])
+    out = design_module.simulate_moved(models, objects, lefts, rights, feasible, "mujoco", 0.2, 2,
+                                       np.random.default_rng(0), shared=True)
+    assert out.shape == (2, 2, 3, 11) and len(seen) == 2
+    for ls, rs in seen:
+        for moved in (ls, rs):
+            np.testing.assert_array_equal(moved[0, 0], moved[0, 1])  # one object: one field
+            np.testing.assert_array_equal(moved[1, 0], moved[1, 2])
+            assert not np.array_equal(moved[0, 0], moved[1, 0])  # another object: another
+        assert not np.array_equal(ls[0, 0], left) and not np.array_equal(rs[0, 0], right)
+        np.testing.assert_array_equal(ls[0, 2], left)  # infeasible: not moved
+    assert not np.array_equal(seen[0][0][0, 0], seen[1][0][0, 0])  # each copy its own field
+    seen.clear()
+    design_module.simulate_moved(models, objects, lefts, rights, feasible, "mujoco", 0.2, 1,
+                                 np.random.default_rng(0), shared=False)
+    assert not np.array_equal(seen[0][0][0, 0], seen[0][0][0, 1])
 
 
 def test_imprint_variants_fit_looser_and_tighter(sphere_tsdf):
