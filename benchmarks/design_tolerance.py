@@ -13,14 +13,18 @@ three imprint candidates) is simulated once exactly and ``--copies`` times with 
 height maps moved by a smooth field of ``--tolerance`` mm (``perturbed_heights``; the default 0.3
 moves the fingers' surface by ~0.15 mm on average). Each object's pick is made two ways: by the
 exact outcome (``design``'s default) and by the mean over the exact pair and its copies
-(``design(..., tolerance=, copies=)``). Both picks, the generator's own design and the imprint pair
-are then simulated on ``--fresh-copies`` new moved copies, one field per object and copy shared by
-all four (paired): what the printed fingers would pass.
+(``design(..., tolerance=, copies=)``), whose fields are one per object, copy and side, shared by
+all of the object's candidates (``--fields shared``, design's: the candidates are compared under
+the same printing errors), or every candidate's own (``--fields own``; ``both``: the two picks side
+by side). The picks, the generator's own design and the imprint pair are then simulated on
+``--fresh-copies`` new moved copies, one field per object and copy shared by all of them (paired;
+a candidate two picks share is simulated once): what the printed fingers would pass.
 
 Printed per pick: trials of 11 as reported (its score when picked), on fresh copies, and the
 paired gain on fresh copies over the exact-outcome pick and over Imprint with 95% bootstrap
-intervals over objects.  Cost: (K + 3) x (1 + copies) evaluations per object, plus at most
-4 x fresh-copies (about 25 minutes for 61 objects, K 16, 3 copies on 2 cores).
+intervals over objects.  Cost: (K + 3) x (1 + copies) evaluations per object (copies twice with
+``both``), plus at most one per pick and fresh copy (about 25 minutes for 61 objects, K 16, 3
+copies on 2 cores; 40 with ``both``).
 """
 
 from __future__ import annotations
@@ -67,6 +71,9 @@ def main(argv=None) -> int:
                     "points, mm (0.3: the fingers' surface moves ~0.15 mm on average)")
     ap.add_argument("--copies", type=int, default=3, help="moved copies per candidate for the pick")
     ap.add_argument("--fresh-copies", type=int, default=4, help="new moved copies per pick for the score")
+    ap.add_argument("--fields", choices=("own", "shared", "both"), default="shared",
+                    help="the pick's moved copies: every candidate its own fields, one field per "
+                    "object, copy and side shared by its candidates (design's), or both picks side by side")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
     if not args.tolerance > 0 or args.copies < 1 or args.fresh_copies < 1 or args.candidates < 1:
@@ -104,34 +111,43 @@ def main(argv=None) -> int:
           f"{args.copies} copies moved by {args.tolerance} mm = {sd:.3f} voxels", flush=True)
     t0 = time.time()
     exact = simulate_candidates(nets, objs, lefts, rights, feasible, "mujoco", progress=True)
-    moved = simulate_moved(nets, objs, lefts, rights, feasible, "mujoco", sd, args.copies,
-                           np.random.default_rng([args.seed, 1]), progress=True)
     rows = np.arange(n)
     trials_exact = exact.sum(-1).astype(float)
-    trials_mean = (trials_exact + moved.sum(-1).sum(0)) / (1 + args.copies)
     imprint = args.candidates  # IMPRINT_VARIANTS[0], the plain imprint pair
-    picks = {"exact outcome": rank_candidates(feasible, predicted, exact)[:, 0],
-             f"mean over it and {args.copies} moved copies":
-                 rank_candidates(feasible, predicted, exact, moved)[:, 0],
-             "own design": np.zeros(n, int), "imprint": np.full(n, imprint)}
-    reported = {name: (trials_mean if "moved" in name else trials_exact)[rows, ks]
-                for name, ks in picks.items()}
+    picks = {"exact outcome": rank_candidates(feasible, predicted, exact)[:, 0]}
+    reported = {"exact outcome": trials_exact[rows, picks["exact outcome"]]}
+    for shared in {"own": [False], "shared": [True], "both": [False, True]}[args.fields]:
+        moved = simulate_moved(nets, objs, lefts, rights, feasible, "mujoco", sd, args.copies,
+                               np.random.default_rng([args.seed, 1]), progress=True, shared=shared)
+        name = (f"mean over it and {args.copies} moved copies"
+                + (", fields shared" if shared else ", own fields"))
+        picks[name] = rank_candidates(feasible, predicted, exact, moved)[:, 0]
+        reported[name] = ((trials_exact + moved.sum(-1).sum(0)) / (1 + args.copies))[rows, picks[name]]
+    picks.update({"own design": np.zeros(n, int), "imprint": np.full(n, imprint)})
+    reported.update({name: trials_exact[rows, picks[name]] for name in ("own design", "imprint")})
 
-    # fresh copies: one field per object, copy and side, shared by every pick (paired)
+    # fresh copies: one field per object, copy and side, shared by every pick (paired); a
+    # candidate two picks share is simulated once
     j = args.fresh_copies
-    fresh = {}
+    fresh, done = {}, {}
     for name, ks in picks.items():
         ml, mr = printed_copies(lefts[rows, ks], rights[rows, ks], args.tolerance, g, j, [args.seed, 2])
-        out = sim.evaluate(np.concatenate([objs] * j), ml, mr, cfg=cfg, progress=False)
-        fresh[name] = out.reshape(j, n, -1).transpose(1, 0, 2)  # [N, J, 11]
-        print(f"  {name}: {len(ks)} picks x {args.fresh_copies} fresh copies simulated", flush=True)
+        new = [i for i in rows if (i, ks[i]) not in done]
+        if new:
+            idx = np.array([[c * n + i for i in new] for c in range(j)]).ravel()
+            out = sim.evaluate(objs[np.tile(new, j)], ml[idx], mr[idx], cfg=cfg, progress=False)
+            out = out.reshape(j, len(new), -1)
+            for m, i in enumerate(new):
+                done[(i, ks[i])] = out[:, m]
+        fresh[name] = np.stack([done[(i, ks[i])] for i in rows])  # [N, J, 11]
+        print(f"  {name}: {len(new)} of {n} picks new, x {j} fresh copies simulated", flush=True)
     table = pick_table(picks, reported, fresh, base="exact outcome", imprint="imprint")
-    print(f"\n{'pick by':<36}{'reported':>9}{'fresh':>7}  {'minus exact-outcome pick':<26}"
+    print(f"\n{'pick by':<52}{'reported':>9}{'fresh':>7}  {'minus exact-outcome pick':<26}"
           f"{'minus imprint':<26}same pick")
     for name, row in table.items():
         a, b = row["gain_over_base"], row["gain_over_imprint"]
         gains = "".join(f"{f'{d[0]:+.2f} [{d[1]:+.2f}, {d[2]:+.2f}]':<26}" for d in (a, b))
-        print(f"{name:<36}{row['reported']:>9.2f}{row['fresh']:>7.2f}  {gains}"
+        print(f"{name:<52}{row['reported']:>9.2f}{row['fresh']:>7.2f}  {gains}"
               f"{row['same_pick_as_base']}/{n}")
     print(f"({n} objects, trials of 11; {time.time() - t0:.0f} s of simulation)")
     if args.json:
