@@ -51,8 +51,9 @@ def _design_parser() -> argparse.ArgumentParser:
     p.add_argument("--tolerance", type=float, default=0.0, metavar="MM",
                    help="with --verify, also simulate --copies copies of every candidate with both "
                         "fingers moved by a smooth random field of this standard deviation in mm (a "
-                        "printer's error: 0.3 moves the fingers' surface ~0.15 mm on average) and "
-                        "rank by the mean over them; costs 1 + copies times the simulation "
+                        "printer's error: 0.3 moves the fingers' surface ~0.15 mm on average; the "
+                        "same fields for every candidate) and rank by the mean over them; costs "
+                        "1 + copies times the simulation "
                         "(default 0: off)")
     p.add_argument("--copies", type=int, default=3, help="moved copies per candidate with "
                    "--tolerance (default 3)")
