@@ -131,9 +131,10 @@ def main(argv=None) -> int:
     j = args.fresh_copies
     fresh, done = {}, {}
     for name, ks in picks.items():
-        ml, mr = printed_copies(lefts[rows, ks], rights[rows, ks], args.tolerance, g, j, [args.seed, 2])
         new = [i for i in rows if (i, ks[i]) not in done]
-        if new:
+        if new:  # the fields depend on every row's index, so all rows are moved, the new simulated
+            ml, mr = printed_copies(lefts[rows, ks], rights[rows, ks], args.tolerance, g, j,
+                                    [args.seed, 2])
             idx = np.array([[c * n + i for i in new] for c in range(j)]).ravel()
             out = sim.evaluate(objs[np.tile(new, j)], ml[idx], mr[idx], cfg=cfg, progress=False)
             out = out.reshape(j, len(new), -1)
