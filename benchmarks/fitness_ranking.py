@@ -142,7 +142,7 @@ def _digest(volume: np.ndarray) -> str:
 
 def make(args) -> int:
     from f2f_jax.config import default
-    from f2f_jax.data import held_out_objects, run_objects
+    from f2f_jax.data import builtin_objects, held_out_objects, run_objects
     from f2f_jax.geometry import postprocess
     from f2f_jax.nets.inference import propose
     from f2f_jax.sim import evaluate
@@ -154,12 +154,24 @@ def make(args) -> int:
     geometry = default().geometry
     test_objs, _ = held_out_objects(args.test_run, geometry)
     banned = {_digest(o) for o in test_objs}
-    objects = {}
+    objects, seen = {}, set(banned)
     for i, run in enumerate(map(Path, args.runs)):
         tsdfs, names = run_objects(run, geometry)
-        keep = [j for j, o in enumerate(tsdfs) if _digest(o) not in banned]
-        objects[i] = (tsdfs[keep][: args.objects_per_run], [names[j] for j in keep][: args.objects_per_run])
-        print(f"run {run}: {len(keep)} of {len(tsdfs)} objects (the rest are the test's)", flush=True)
+        keep = [j for j, o in enumerate(tsdfs) if _digest(o) not in seen][: args.objects_per_run]
+        seen |= {_digest(tsdfs[j]) for j in keep}
+        if keep:  # runs of one seed share their objects: each object once
+            objects[i] = (tsdfs[keep], [names[j] for j in keep])
+        print(f"run {run}: {len(keep)} of {len(tsdfs)} objects (the rest are the test's or an "
+              f"earlier run's)", flush=True)
+    if args.fresh:  # more objects than the runs hold: built-in ones of another seed (coacd, cached)
+        from f2f_jax.geometry import mesh_to_tsdf
+        meshes = builtin_objects(args.fresh, seed=args.fresh_seed)
+        tsdfs = np.stack([mesh_to_tsdf(m, geometry) for m in meshes])
+        keep = [j for j, o in enumerate(tsdfs) if _digest(o) not in seen]
+        objects["fresh"] = (tsdfs[keep], [f"fresh{args.fresh_seed}/{meshes[j].metadata.get('name')}"
+                                          for j in keep])
+        print(f"fresh (seed {args.fresh_seed}): {len(keep)} of {len(tsdfs)} objects (the rest are the "
+              f"test's or a run's)", flush=True)
     total, start = 0, time.time()
     for noise in args.noise:
         for i, run in enumerate(map(Path, args.runs)):
@@ -376,6 +388,10 @@ def main(argv=None) -> int:
     m.add_argument("--candidates", type=int, default=16)
     m.add_argument("--noise", type=float, nargs="+", default=[0.4], help="latent noise (design's is 0.2)")
     m.add_argument("--objects-per-run", type=int, default=10**9)
+    m.add_argument("--fresh", type=int, default=0,
+                   help="also this many built-in objects of --fresh-seed (coacd on first use, cached)")
+    m.add_argument("--fresh-seed", type=int, default=8,
+                   help="seed of the --fresh objects (the test's fresh objects are seed 7's: keep apart)")
     m.add_argument("--out", required=True)
     t = sub.add_parser("test", help="the ranking test: full protocol, K candidates per object")
     t.add_argument("--test-run", required=True)
