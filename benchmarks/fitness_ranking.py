@@ -240,7 +240,8 @@ def _load_groups(directory: Path, max_rows: int):
     """Training rows grouped by object: volumes, grasp labels and [(object index, rows)]."""
     objects, lefts, rights, labels, groups, n = [], [], [], [], [], 0
     for path in sorted(directory.glob("r*_o*.npz")):
-        z = np.load(path)
+        with np.load(path) as npz:  # each array read once (an NpzFile reads it again on every access)
+            z = {k: npz[k] for k in ("objects", "lefts", "rights", "feasible", "grasp")}
         feasible = z["feasible"]
         for i in range(len(feasible)):
             ks = np.nonzero(feasible[i])[0]
