@@ -8,6 +8,7 @@ benchmarks/RESULTS.md). This script measures whether within-object data, made ch
     #    objects, K candidates per object (own design + latent perturbations), first grasp only
     python benchmarks/fitness_ranking.py make --runs R0 R1 R2 --test-run R0 --candidates 16 \\
         --noise 0.4 --out D
+    #    (--fresh 148 --fresh-seed 8: built-in objects beside the runs' own, coacd'd once and cached)
     # 2. the test: R0's held-out objects and 48 fresh ones, 16 candidates each, all 11 trials
     python benchmarks/fitness_ranking.py test --test-run R0 --fresh 48 --seed 7 --out D
     # 3. a net trained on D (grasp BCE + a within-object pairwise loss), scored on the test
@@ -154,6 +155,9 @@ def make(args) -> int:
     geometry = default().geometry
     test_objs, _ = held_out_objects(args.test_run, geometry)
     banned = {_digest(o) for o in test_objs}
+    if (out / "test.npz").exists():  # the test's fresh objects too, when `test` has already run
+        with np.load(out / "test.npz") as z:
+            banned |= {_digest(o) for o in z["objects"]}
     objects, seen = {}, set(banned)
     for i, run in enumerate(map(Path, args.runs)):
         tsdfs, names = run_objects(run, geometry)
