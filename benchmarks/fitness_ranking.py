@@ -154,15 +154,22 @@ def make(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     geometry = default().geometry
     test_objs, _ = held_out_objects(args.test_run, geometry)
-    banned = {_digest(o) for o in test_objs}
+    seen = {_digest(o) for o in test_objs}  # objects never trained on: the test's, then each once
     if (out / "test.npz").exists():  # the test's fresh objects too, when `test` has already run
         with np.load(out / "test.npz") as z:
-            banned |= {_digest(o) for o in z["objects"]}
-    objects, seen = {}, set(banned)
+            seen |= {_digest(o) for o in z["objects"]}
+
+    def unseen(tsdfs, limit=None):
+        """Indices of the volumes not seen before (at most ``limit``), now marked seen."""
+        digests = [_digest(o) for o in tsdfs]
+        keep = [j for j, d in enumerate(digests) if d not in seen][:limit]
+        seen.update(digests[j] for j in keep)
+        return keep
+
+    objects = {}
     for i, run in enumerate(map(Path, args.runs)):
         tsdfs, names = run_objects(run, geometry)
-        keep = [j for j, o in enumerate(tsdfs) if _digest(o) not in seen][: args.objects_per_run]
-        seen |= {_digest(tsdfs[j]) for j in keep}
+        keep = unseen(tsdfs, args.objects_per_run)
         if keep:  # runs of one seed share their objects: each object once
             objects[i] = (tsdfs[keep], [names[j] for j in keep])
         print(f"run {run}: {len(keep)} of {len(tsdfs)} objects (the rest are the test's or an "
@@ -171,7 +178,7 @@ def make(args) -> int:
         from f2f_jax.geometry import mesh_to_tsdf
         meshes = builtin_objects(args.fresh, seed=args.fresh_seed)
         tsdfs = np.stack([mesh_to_tsdf(m, geometry) for m in meshes])
-        keep = [j for j, o in enumerate(tsdfs) if _digest(o) not in seen]
+        keep = unseen(tsdfs)
         objects["fresh"] = (tsdfs[keep], [f"fresh{args.fresh_seed}/{meshes[j].metadata.get('name')}"
                                           for j in keep])
         print(f"fresh (seed {args.fresh_seed}): {len(keep)} of {len(tsdfs)} objects (the rest are the "
