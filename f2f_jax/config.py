@@ -45,6 +45,11 @@ class GeometryConfig:
     # ~0.15 s, no cache; 94-95% of trials agree with coacd's, under the 96% a preset needs:
     # benchmarks/RESULTS.md).
     object_method: str = "coacd"
+    # How a mesh becomes an object volume (``geometry.place_mesh``): "stretch", each axis scaled
+    # to fill the cube (the paper's convention: a 2 x 1 x 1 box becomes a cube), or "fit", one
+    # factor for all three axes (the shape kept).  The nets learn objects placed this way, so
+    # ``design`` places a user's mesh the same way unless told otherwise ("real" keeps its size).
+    object_scale: str = "stretch"
 
     @property
     def rest_offset(self) -> float:
@@ -202,7 +207,7 @@ class TrainConfig:
     gn_passes: int = 1
     # Generator-pretraining epochs after the gn_epochs, at generator_lr (an annealing phase: the
     # imprint loss plateaus noisily at lr, and co-training's own steps run at generator_lr).
-    # Session 23, 5 epochs on the default at 3 seeds: imprint L1 0.57-0.69 -> 0.38, ImpGN +0.18
+    # Measured with 5 epochs on the default at 3 seeds: imprint L1 0.57-0.69 -> 0.38, ImpGN +0.18
     # trials of 11 on 61 objects, but Fit2Form after co-training -0.05: so 0 by default.
     gn_anneal_epochs: int = 0
     cycles: int = 20
@@ -239,7 +244,7 @@ class TrainConfig:
     cycle_candidates: int = 1
     # Steps per epoch of the fitness net's refit in a cycle (None: max_steps_per_epoch, the
     # pretraining's cap).  A cycle that simulates K times the designs needs about K times the
-    # steps for its fitness net to see each of them as often (session 28, benchmarks/RESULTS.md).
+    # steps for its fitness net to see each of them as often (benchmarks/RESULTS.md).
     fn_refit_steps: int | None = None
     # --- the run's data (experiments/cotrain.py) ---
     n_objects: int = 1000  # built-in objects made when no --objects directory is given
@@ -251,7 +256,7 @@ class TrainConfig:
     perturbed_pairs: int = 0
     # Their fields' largest peak, a share of the TSDF range (the k-th of K pairs gets k / K of it):
     # at 0.3, 5 of 16 builtin objects' imprint + 6 perturbed pairs differ in any trial; at 0.6, 8
-    # (benchmarks/RESULTS.md, session 26)
+    # (benchmarks/RESULTS.md)
     perturbed_peak: float = 0.3
     # More objects for the generator's pretraining alone: the imprint pairs of this many built-in
     # objects beyond the run's own (indices n_objects.. of the seed's stream: never one of the
@@ -293,12 +298,12 @@ def default() -> Config:
             # 4 -> 12 -> 36 -> 38 -> 40 (kernel 3; two stride-1 layers at full resolution): a VAE
             # training step 2.6x cheaper (1.32 s against 3.44 s, batch 32, 2 cores), the whole run
             # 16 min instead of 36-43, and held-out IoU 0.676 / 0.582 / 0.487 against 0.634 /
-            # 0.558 / 0.360 at seeds 0 / 1 / 2 (benchmarks/RESULTS.md, session 14)
+            # 0.558 / 0.360 at seeds 0 / 1 / 2 (benchmarks/RESULTS.md)
             decoder_fc=(512, 1024), decoder_seed_size=4, decoder_channels=(16, 1),
             decoder_strides=(3, 3), decoder_kernels=(4, 4),
             generator_fc=(512, 512),
             fitness_channels=(4, 8, 16, 32), fitness_blocks=(0, 1, 1, 1), fitness_fc=(128, 64),
-            # the height-map generator (session 19, benchmarks/RESULTS.md): on 61 objects its own
+            # the height-map generator (benchmarks/RESULTS.md): on 61 objects its own
             # designs pass 1.5-1.6 trials of 11 more than the latent generator's at seed 0, after
             # pretraining and after co-training, 93% grasp against 77% ("latent": the paper's)
             generator="heights",
@@ -308,13 +313,13 @@ def default() -> Config:
         # its target here, so it runs the cap (2 passes over the 51 training objects).  A cycle
         # costs ~27 s with the decoder above (~45 s with the first one, ~75 s with 2..6 epochs);
         # the whole run 16 min on 2 cores with seed 0's shipped pieces and the latent generator,
-        # 19 min 43 s with the height generator (cycles 31-35 s; session 20), 29 min 57 s with
-        # the 600 extra imprint objects below (session 21: +2.5 min of TSDFs, +9 min of
+        # 19 min 43 s with the height generator (cycles 31-35 s), 29 min 57 s with
+        # the 600 extra imprint objects below (+2.5 min of TSDFs, +9 min of
         # pretraining), longer at seeds whose 64 objects go through coacd first
         # (benchmarks/RESULTS.md).  The height generator's
         # pretraining: 12 passes of 2 steps an epoch, 480 steps (~2 min), where one pass (40
         # steps) leaves it far from the imprints; the latent generator's schedule was one pass
-        # (``--set net.generator=latent --set train.gn_passes=1``: the default before session 19).
+        # (``--set net.generator=latent --set train.gn_passes=1``: the default before the height generator).
         train=dataclasses.replace(
             base.train, lr=1e-3, generator_lr=1e-4, ae_epochs=40, ae_batch_size=32, fn_epochs=10, fn_batch_size=32,
             gn_epochs=20, gn_passes=12, objects_per_cycle=32, cotrain_batch_size=32, min_epochs=1, max_epochs=2,
@@ -323,7 +328,7 @@ def default() -> Config:
             # pretraining (1,920 steps instead of 480: 12 passes are capped at 8 steps each):
             # on 61 objects its co-trained designs pass +0.44, +0.15 and +0.67 trials of 11 more
             # than without them at seeds 0, 1, 2, and co-training then adds +0.23..+0.43 trials
-            # (benchmarks/RESULTS.md, session 21)
+            # (benchmarks/RESULTS.md)
             imprint_objects=600,
         ),
     )
@@ -356,7 +361,7 @@ def workstation() -> Config:
     """The default's nets, physics and protocol on >= 100x its simulated results and 10x its objects:
     a many-core CPU machine (plain MuJoCo in threads, or Ray tasks on a cluster) or ``--backend
     warp`` on a GPU.  Its figures are in ``planned_simulations``; what it costs, measured and
-    projected, is in benchmarks/RESULTS.md (session 26)."""
+    projected, is in benchmarks/RESULTS.md."""
     base = default()
     return base.replace(
         train=dataclasses.replace(

@@ -121,3 +121,49 @@ def test_solid_iou_per_volume():
     np.testing.assert_allclose(solid_iou(a, b), [0.5, 1.0])
     assert solid_iou(a[0], a[0]) == 1.0
     assert solid_iou(np.ones((4, 4, 4)), np.ones((4, 4, 4))) == 0.0  # two empty volumes
+
+
+# ------------------------------------------------------------------------- placing a mesh
+
+
+def test_scale_modes_keep_or_change_the_objects_shape():
+    """A 40 x 20 x 10 mm box: stretched it fills the cube (a cube), fit it keeps 4:2:1 with its
+    longest side the cube's span, at its real size it is 40 x 20 x 10 mm; each says so."""
+    from f2f_jax.geometry import object_volume, place_mesh
+
+    g = GeometryConfig()
+    span = g.cube_size - 2 * g.voxel_size
+    box = trimesh.creation.box((40.0, 20.0, 10.0))  # millimetres
+    volumes = {}
+    for scale, units, size in [("stretch", None, (span, span, span)),
+                               ("fit", None, (span, span / 2, span / 4)),
+                               ("real", "mm", (0.040, 0.020, 0.010))]:
+        placed, where = place_mesh(box, g, scale=scale, units=units)
+        np.testing.assert_allclose(placed.extents, size, rtol=1e-9)
+        np.testing.assert_allclose(where.size_m, size, rtol=1e-9)
+        assert where.mode == scale and where.uniform == (scale != "stretch")
+        assert placed.bounds[0][2] == pytest.approx(g.voxel_size)  # resting on the cube's floor
+        np.testing.assert_allclose(placed.bounds.mean(0)[:2], 0.0, atol=1e-12)  # centred in x, y
+        volumes[scale], got = object_volume(box, g, scale=scale, units=units)
+        assert got == where and where.to_json()["object_size_mm"] == [round(s * 1e3, 3) for s in size]
+    solid = {k: (v < 0).mean() for k, v in volumes.items()}
+    assert solid["stretch"] > 0.8 > 0.15 > solid["fit"] > solid["real"] > 0.02
+    # the default is the config's (the nets' training objects): stretch, bit for bit
+    np.testing.assert_array_equal(mesh_to_tsdf(box, g), volumes["stretch"])
+
+
+def test_real_size_refuses_what_does_not_fit_and_needs_units():
+    from f2f_jax.geometry import place_mesh
+
+    box = trimesh.creation.box((80.0, 20.0, 10.0))
+    with pytest.raises(MeshError, match=r"80\.0 x 20\.0 x 10\.0 mm .*57\.0 mm"):
+        place_mesh(box, scale="real", units="mm", name="long box")
+    with pytest.raises(ValueError, match="units"):
+        place_mesh(box, scale="real")
+    with pytest.raises(ValueError, match="scale"):
+        place_mesh(box, scale="squash")
+    with pytest.raises(ValueError, match="units"):
+        place_mesh(box, scale="real", units="furlong")
+    # the same box in metres, at its real size, is 80 m long: refused, naming its size
+    with pytest.raises(MeshError, match="80000.0 x"):
+        place_mesh(trimesh.creation.box((80.0, 20.0, 10.0)), scale="real", units="m")

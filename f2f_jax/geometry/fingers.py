@@ -296,11 +296,20 @@ def finger_with_mount(finger_tsdf, cfg=None) -> trimesh.Trimesh:
     return marching_cubes_mesh(volume, g.voxel_size, origin)
 
 
-def export_finger_stl(finger_tsdf, path, cfg=None) -> Path:
-    """Write finger plus mount plate as a watertight STL in millimetres (atomic write)."""
+def export_finger_stl(finger_tsdf, path, cfg=None, *, header: str = "") -> Path:
+    """Write finger plus mount plate as a watertight binary STL in millimetres (atomic write).
+
+    header: up to 80 ASCII characters for the STL's header (what the finger was designed for);
+    longer text is cut, and a header never starts with "solid" (readers would take the file for
+    an ASCII STL)."""
     mesh = finger_with_mount(finger_tsdf, cfg)
     mesh.apply_scale(1000.0)
+    data = bytearray(trimesh.exchange.stl.export_stl(mesh))
+    text = header.encode("ascii", "replace")[:80]
+    if text.lower().startswith(b"solid"):
+        text = (b"f2f_jax " + text)[:80]
+    data[:80] = text.ljust(80, b" ")
     path = Path(path)
     with atomic_path(path) as tmp:
-        mesh.export(tmp, file_type="stl")
+        Path(tmp).write_bytes(bytes(data))
     return path

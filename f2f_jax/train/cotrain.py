@@ -118,6 +118,9 @@ class CoTrainRun:
             raise ConfigError(f"train.gn_anneal_epochs must be >= 0, got {t.gn_anneal_epochs}")
         if t.objectives not in OBJECTIVES:
             raise ConfigError(f"train.objectives must be one of {OBJECTIVES}, got {t.objectives!r}")
+        if cfg.geometry.object_scale not in ("stretch", "fit"):
+            raise ConfigError("geometry.object_scale must be 'stretch' or 'fit' (how the run's "
+                              f"meshes are placed in the cube), got {cfg.geometry.object_scale!r}")
         generator_module(cfg.net)  # ConfigError on an unknown net.generator
         if cfg.net.generator == "heights" and cfg.net.height_truncation_voxels != cfg.geometry.truncation_voxels:
             raise ConfigError(
@@ -345,7 +348,7 @@ class CoTrainRun:
 
     def _cycle_cfg(self) -> Config:
         """The config of the generator's co-training steps: its own learning rate (the fitness
-        net refits at ``lr``); the optimiser state carries over, its structure does not change."""
+        net refits at ``lr``); the optimiser state is kept, its structure does not change."""
         t = self.cfg.train
         if t.generator_lr is None or t.generator_lr == t.lr:
             return self.cfg
