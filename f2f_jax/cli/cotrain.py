@@ -4,6 +4,8 @@
     python experiments/cotrain.py --config paper --objects ~/shapenet --run-dir runs/paper
     python experiments/cotrain.py --cycles 20 --objectives GS --from-pretrained runs/cotrain \
         --run-dir runs/cotrain-GS                                # an ablation on the same pretraining
+    python experiments/cotrain.py --cycles 20 --export f2f_jax/weights/default
+                                                # the model the package ships, rebuilt
     python experiments/cotrain.py --cycles 20 --executor ray   # simulation on a Ray cluster
     python experiments/cotrain.py --cycles 20 --config workstation --xla-threads 0 --run-dir runs/ws
                                                 # 100x the simulations: a many-core machine
@@ -81,6 +83,10 @@ def _parser() -> argparse.ArgumentParser:
                         "--set train.generator_lr=3e-4 --set sim.timestep=0.002; recorded in the "
                         "run directory's run.json, which a resumed run must match")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--export", metavar="PATH", default=None,
+                   help="when the run ends, write its nets as PATH.npz with PATH.json (config, seed, "
+                        "objects, held-out table, commit): the file design() loads; "
+                        "f2f_jax/weights/default is the model the package ships")
     reproducible.add_cli_argument(p)
     ray_executor.add_cli_arguments(p)
     return p
@@ -198,7 +204,16 @@ def main(argv=None) -> int:
         return fail(str(exc))
     print(_table(summary))
     print(f"AE held-out IoU: {summary['ae_heldout_iou']:.3f}; curves: {Path(args.run_dir) / 'curves.png'}")
-    print(json.dumps({"summary": str(Path(args.run_dir) / "summary.json")}))
+    out = {"summary": str(Path(args.run_dir) / "summary.json")}
+    if args.export:
+        from f2f_jax.train.weights import export_run
+
+        argv_text = " ".join(sys.argv[1:] if argv is None else argv)
+        npz, meta = export_run(args.run_dir, args.export,
+                               command=f"python experiments/cotrain.py {argv_text}")
+        print(f"weights: {npz} ({npz.stat().st_size / 2**20:.1f} MB) and {meta}")
+        out["weights"] = str(npz)
+    print(json.dumps(out))
     return 0
 
 
