@@ -102,9 +102,10 @@ def main(argv=None) -> int:
         objs = np.concatenate([objs, np.stack([mesh_to_tsdf(m, g) for m in meshes])])
     n = len(objs)
     lefts, rights = propose(nets, objs, args.key, args.candidates)
-    il, ir = imprint_candidates(objs, g)
+    il, ir, made = imprint_candidates(objs, g)
     lefts, rights = np.concatenate([lefts, il], 1), np.concatenate([rights, ir], 1)
     feasible = postprocess(lefts, rights, g)
+    feasible[:, args.candidates:] &= made  # a variant that cannot be made is never picked
     predicted = predict(nets, objs, lefts, rights)
     sd = tolerance_voxels(args.tolerance, g)
     print(f"{n} objects x {lefts.shape[1]} candidates ({int(feasible.sum())} feasible), "

@@ -1,8 +1,13 @@
 """Design fingers for an object: the public face of a trained run.
 
-    pair = f2f_jax.design(obj_tsdf)                       # newest checkpoint of runs/cotrain
-    pair = f2f_jax.design(obj_tsdf, candidates=16, verify=True)
+    pair = f2f_jax.design(obj_tsdf)                       # the verified pool, shipped weights
+    pair = f2f_jax.design("part.stl", scale="real", units="mm")   # a mesh at its real size
+    pair = f2f_jax.design(obj_tsdf, verify=False, candidates=1)   # the generator alone: fast
     pair.export_stl("out/"); pair.render("out/design.png"); print(pair)
+
+The defaults (``DEFAULT_CANDIDATES`` = 16 and ``DEFAULT_VERIFY``, shared with ``f2f-design``) are
+the verified pool: 16 generated candidates and the object's imprints, simulated, best simulated
+first.  ``verify=False`` ranks by the fitness net alone and simulates nothing.
 
 How a design is chosen, per object:
 
@@ -21,7 +26,9 @@ How a design is chosen, per object:
    of it (``IMPRINT_VARIANTS``: the imprints of the object grown and shrunk by one voxel, a
    looser and a tighter fit), so the verified pick never passes fewer of its simulated trials
    than the imprint fingers would; ``imprint=False`` leaves them out, ``imprint=True`` adds them
-   without ``verify`` too.  ``FingerPair.origin`` says where the pick came from.
+   without ``verify`` too.  ``FingerPair.origin`` says where the pick came from.  A variant that
+   cannot be made (a box filling the cube, grown by a voxel, leaves nothing to imprint) is left
+   out of the pool and named in ``FingerPair.left_out``; the object is still designed for.
    With ``tolerance`` (millimetres) each feasible candidate is also simulated as ``copies`` moved
    copies: both fingers' height maps moved by a smooth random field of that standard deviation
    (``nets.inference.perturbed_heights``), a printer's error, the same fields for all of one
@@ -30,7 +37,7 @@ How a design is chosen, per object:
    0.15 mm flips 5% of trials), so a pick by its exact outcome alone is partly luck; a pick by
    its mean over the copies is one whose outcome survives printing, and
    ``FingerPair.simulated_mean`` says what to expect of the printed fingers.
-5. Ranking: feasible first, then the simulated outcome (number of the 11 trials passed, when
+5. Ranking: made and feasible first, then the simulated outcome (number of the 11 trials passed, when
    verified; with ``tolerance``, its mean over the exact design and its moved copies), then the
    mean predicted probability, then the candidate index (the generator's own output wins full
    ties).  When no candidate is feasible the best-predicted one is returned with
@@ -43,15 +50,27 @@ memory stays bounded for large batches (256 objects x 64 candidates) while the c
 from __future__ import annotations
 
 import dataclasses
+import logging
+import os
 import warnings
 from pathlib import Path
 
 import jax
 import numpy as np
+import trimesh
 
 from f2f_jax.config import BACKENDS, TRIAL_NAMES, GeometryConfig
 from f2f_jax.errors import F2FError, VolumeError
-from f2f_jax.geometry import check_tsdf, export_finger_stl, imprint_fingers, postprocess
+from f2f_jax.geometry import (
+    SCALES,
+    UNITS,
+    Placement,
+    check_tsdf,
+    export_finger_stl,
+    imprint_fingers,
+    object_volume,
+    postprocess,
+)
 from f2f_jax.nets import RESOLUTION
 from f2f_jax.nets.inference import (
     HEIGHT_NOISE_GRID,
@@ -63,11 +82,17 @@ from f2f_jax.nets.inference import (
     propose,
 )
 
+log = logging.getLogger(__name__)
+
 # The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
 # Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
 IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (
     ("imprint", 0.0), ("imprint, 1 voxel looser", 1.0), ("imprint, 1 voxel tighter", -1.0))
 GENERATOR = "generator"
+# design()'s and f2f-design's defaults: the verified pool (benchmarks/design_latency.py measures
+# what each mode costs and passes).
+DEFAULT_CANDIDATES = 16
+DEFAULT_VERIFY = True
 GENERATOR_NOISE = "generator + latent noise"
 GENERATOR_HEIGHT_NOISE = "generator + height noise"  # a height-map generator's candidates
 
@@ -93,6 +118,10 @@ class FingerPair:
     moved: [C, 11] uint8 simulated outcomes of C copies of the pair with both fingers moved by a
         smooth field of standard deviation ``tolerance`` (mm; ``design(..., tolerance=...)``), or
         None (tolerance 0).
+    left_out: the origins of pool candidates that could not be made for this object (an imprint
+        variant of a box that fills the cube: ``imprint_candidates``), left out of the ranking.
+    placement: how the object's mesh was placed in the design cube (``geometry.Placement``: the
+        scale mode and factor the fingers fit), or None when a TSDF was given.
     """
 
     left: np.ndarray
@@ -109,6 +138,8 @@ class FingerPair:
     origin: str = GENERATOR
     moved: np.ndarray | None = None
     tolerance: float = 0.0
+    left_out: tuple[str, ...] = ()
+    placement: Placement | None = None
 
     @property
     def predicted_mean(self) -> float:
@@ -124,9 +155,10 @@ class FingerPair:
         runs = [self.simulated[None]] + ([] if self.moved is None else [self.moved])
         return float(np.concatenate(runs).sum(axis=-1).mean())
 
-    def export_stl(self, directory) -> tuple[Path, Path]:
+    def export_stl(self, directory, *, name: str | None = None) -> tuple[Path, Path]:
         """Write ``left.stl`` and ``right.stl`` (finger plus mount plate, watertight, millimetres)
-        into ``directory`` (created if missing).  Returns (left_path, right_path).
+        into ``directory`` (created if missing).  Returns (left_path, right_path).  Each STL's
+        header names the side, the object (``name``) and how it was placed (``placement``).
 
         Raises VolumeError for an infeasible pair: it cannot be printed and mounted.
         """
@@ -135,8 +167,12 @@ class FingerPair:
                               "export it: try more candidates or a trained checkpoint")
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
-        left = export_finger_stl(self.left, directory / "left.stl", self.geometry)
-        right = export_finger_stl(self.right, directory / "right.stl", self.geometry)
+        where = "TSDF in the design cube" if self.placement is None else self.placement.short()
+        obj = f" {name}" if name else ""
+        left, right = (export_finger_stl(
+            finger, directory / f"{side}.stl", self.geometry,
+            header=f"f2f_jax {side} finger (mm) for{obj}: {where}")
+            for side, finger in (("left", self.left), ("right", self.right)))
         return left, right
 
     def render(self, path, *, title: str | None = None, dpi: int = 90) -> Path:
@@ -164,6 +200,8 @@ class FingerPair:
             simulated_mean=(None if self.simulated_mean is None else round(self.simulated_mean, 4)),
             candidate=int(self.candidate), n_candidates=int(self.n_candidates),
             n_feasible=int(self.n_feasible), origin=self.origin, source=self.source,
+            left_out=[dict(origin=name, reason=left_out_reason(name)) for name in self.left_out],
+            object_scale=None if self.placement is None else self.placement.to_json(),
         )
 
     def _headline(self) -> str:
@@ -200,20 +238,27 @@ class FingerPair:
     __repr__ = __str__
 
 
-def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates: int = 1,
-           verify: bool = False, backend: str = "mujoco", run_dir=None,
-           noise: float = LATENT_NOISE, progress: bool | None = None, executor: str = "threads",
-           imprint: bool | None = None, tolerance: float = 0.0, copies: int = 3):
+def design(obj, *, params: TrainedNets | None = None, key=None,
+           candidates: int = DEFAULT_CANDIDATES, verify: bool = DEFAULT_VERIFY,
+           backend: str = "mujoco", run_dir=None, noise: float = LATENT_NOISE,
+           progress: bool | None = None, executor: str = "threads", imprint: bool | None = None,
+           tolerance: float = 0.0, copies: int = 3, scale: str | None = None,
+           units: str | None = None):
     """Design a finger pair for each object.
 
-    obj_tsdf: [40, 40, 40] float32 object TSDF (negative inside) -> FingerPair, or a batch
-        [B, 40, 40, 40] -> list of B FingerPairs.
-    params: trained TrainedNets; None loads the newest checkpoint of ``run_dir`` (default
-        ``$F2F_RUN_DIR`` or ``runs/cotrain``) with ``train.checkpoint.load_trained_nets``.
+    obj: one object -> FingerPair, or a batch -> list of FingerPairs.  An object is a [40, 40, 40]
+        float32 TSDF (negative inside; a batch [B, 40, 40, 40]), a ``trimesh.Trimesh``, or a mesh
+        file's path (a batch: a list of meshes or paths).  Meshes are placed in the design cube
+        by ``geometry.place_mesh`` with ``scale`` and ``units`` and ``FingerPair.placement`` says
+        how; a TSDF is already in the cube.
+    params: trained TrainedNets; None loads ``run_dir``'s newest checkpoint, or, with no run_dir
+        and no ``$F2F_RUN_DIR``, the weights that ship with the package
+        (``train.weights.load_weights``).
     key: jax PRNG key (or an int seed) for the latent noise of candidates 1..K-1; default key(0).
     candidates: K >= 1 designs sampled per object (see the module docstring for the ranking).
     verify: simulate the feasible candidates (one ``sim.evaluate`` call with ``backend``) and rank
-        by simulated outcome first; executor: that call's (``sim.evaluate``: "threads" or "ray").
+        by simulated outcome first (the default); False: the fitness net's ranking alone, no
+        simulation (fast).  executor: that call's (``sim.evaluate``: "threads" or "ray").
     imprint: also put the object's imprint pair and its variants (``IMPRINT_VARIANTS``) in the
         pool, after the K generated candidates; None (default): when ``verify``.
     noise: standard deviation of the latent noise (latent units; the latents span [-1, 1]); for a
@@ -227,13 +272,25 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         the exact pair and its copies; costs 1 + copies times the simulation.  The copies' fields
         are drawn from ``key``, one per copy, object and side, shared by the object's candidates.
         ``benchmarks/design_tolerance.py`` measures what it buys.
+    scale, units: how a mesh is placed in the cube (``geometry.place_mesh``): "stretch", "fit" or
+        "real" (with units "m", "cm", "mm" or "in"); None: as the nets' training objects were
+        placed (``config.geometry.object_scale``).  Only for meshes.
 
     Raises VolumeError for a wrong shape, NaN/inf values or an empty or all-inside volume (naming
-    the batch index), ValueError for bad options, CheckpointError (an F2FError) when params is
-    None and no checkpoint can be loaded.  Warns InfeasibleDesignWarning for every object whose
-    candidates are all infeasible.
+    the batch index), MeshError for a mesh that cannot become a volume (naming it), ValueError for
+    bad options, CheckpointError (an F2FError) when no nets can be loaded.  Warns
+    InfeasibleDesignWarning for every object whose candidates are all infeasible.
     """
-    objects, single = _as_objects(obj_tsdf)
+    meshes, single = _as_meshes(obj)
+    if meshes is None:
+        if scale is not None or units is not None:
+            raise ValueError("scale and units place a mesh in the design cube; a TSDF is in it "
+                             "already (give the mesh, or leave them out)")
+        objects, single = _as_objects(obj)
+    elif units is not None and units not in UNITS:
+        raise ValueError(f"unknown units {units!r}; choose one of {', '.join(UNITS)}")
+    elif scale is not None and scale not in SCALES:
+        raise ValueError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
     if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 1:
         raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
     candidates = int(candidates)
@@ -253,18 +310,28 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
                         f"checkpoint), got {type(nets).__name__}")
     key = as_key(key)
     g = nets.config.geometry
+    placements = None
+    if meshes is not None:
+        objects, placements = _mesh_objects(meshes, g, scale, units)
     if imprint is None:
         imprint = verify
 
     lefts, rights = propose(nets, objects, key, candidates, noise)
     noisy = GENERATOR_HEIGHT_NOISE if nets.config.net.generator == "heights" else GENERATOR_NOISE
     origins = [GENERATOR] + [noisy] * (candidates - 1)
+    made = np.ones((len(objects), candidates), bool)
     if imprint:
-        imp_lefts, imp_rights = imprint_candidates(objects, g)
+        imp_lefts, imp_rights, imp_made = imprint_candidates(objects, g)
         lefts = np.concatenate([lefts, imp_lefts], axis=1)
         rights = np.concatenate([rights, imp_rights], axis=1)
+        made = np.concatenate([made, imp_made], axis=1)
         origins += [name for name, _ in IMPRINT_VARIANTS]
-    feasible = postprocess(lefts, rights, g)
+    left_out = [[origins[k] for k in np.nonzero(~made[b])[0]] for b in range(len(objects))]
+    for b, names in enumerate(left_out):
+        for name in names:
+            log.info("design: %s left out of the pool of %s: %s", name,
+                     "the object" if single else f"object {b}", left_out_reason(name))
+    feasible = postprocess(lefts, rights, g) & made
     predicted = predict(nets, objects, lefts, rights)
     if not np.all(np.isfinite(predicted)):
         raise F2FError(f"the fitness net of {nets.source or 'these nets'} predicted NaN/inf; "
@@ -277,7 +344,7 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
         moved = simulate_moved(nets, objects, lefts, rights, feasible, backend,
                                tolerance_voxels(tolerance, g), int(copies), rng, progress,
                                executor=executor, shared=True)
-    best = rank_candidates(feasible, predicted, simulated, moved)[:, 0]
+    best = rank_candidates(feasible, predicted, simulated, moved, made=made)[:, 0]
 
     hopeless = np.nonzero(~feasible.any(axis=1))[0]
     if len(hopeless):
@@ -295,7 +362,8 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
             feasible=bool(feasible[b, k]), object=objects[b].copy(), candidate=int(k),
             n_candidates=len(origins), n_feasible=int(feasible[b].sum()), source=nets.source,
             geometry=g, origin=origins[k], moved=None if moved is None else moved[:, b, k].copy(),
-            tolerance=float(tolerance) if moved is not None else 0.0))
+            tolerance=float(tolerance) if moved is not None else 0.0,
+            left_out=tuple(left_out[b]), placement=None if placements is None else placements[b]))
     return pairs[0] if single else pairs
 
 
@@ -303,18 +371,41 @@ def design(obj_tsdf, *, params: TrainedNets | None = None, key=None, candidates:
 # steps (module-level so that tests and benchmarks can time or replace each one)
 
 
-def imprint_candidates(objects: np.ndarray,
-                       geometry: GeometryConfig | None = None) -> tuple[np.ndarray, np.ndarray]:
+def imprint_candidates(objects: np.ndarray, geometry: GeometryConfig | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The imprint pairs of ``IMPRINT_VARIANTS``: objects [B, R, R, R] -> lefts, rights
-    [B, V, R, R, R] float32 (the object grown by ``voxels`` before imprinting: its TSDF, in units
-    of the truncation distance, lowered by voxels x voxel size / truncation)."""
+    [B, V, R, R, R] float32 and made [B, V] bool.
+
+    A variant grows the object by ``voxels`` before imprinting (its TSDF, in units of the
+    truncation distance, lowered by voxels x voxel size / truncation).  Where that leaves no
+    volume to imprint (a box that fills the cube, grown by a voxel, has no voxel outside; a thin
+    wall, shrunk by one, may vanish), the variant is not made: its fingers are empty volumes and
+    ``made`` is False there, so the pool leaves it out.  The plain imprint (0 voxels) is made for
+    every object that ``check_tsdf`` accepts."""
     g = geometry or GeometryConfig()
     step = g.voxel_size / g.truncation
-    pairs = [[imprint_fingers(np.clip(obj - voxels * step, -1.0, 1.0).astype(np.float32), g)
-              for _, voxels in IMPRINT_VARIANTS] for obj in np.asarray(objects, np.float32)]
-    lefts = np.array([[left for left, _ in row] for row in pairs], np.float32)
-    rights = np.array([[right for _, right in row] for row in pairs], np.float32)
-    return lefts, rights
+    objects = np.asarray(objects, np.float32)
+    b, v, r = len(objects), len(IMPRINT_VARIANTS), g.resolution
+    lefts = np.ones((b, v, r, r, r), np.float32)
+    rights = np.ones((b, v, r, r, r), np.float32)
+    made = np.zeros((b, v), bool)
+    for i, obj in enumerate(objects):
+        for j, (_, voxels) in enumerate(IMPRINT_VARIANTS):
+            grown = np.clip(obj - voxels * step, -1.0, 1.0).astype(np.float32)
+            solid = grown < 0
+            if voxels != 0 and (solid.all() or not solid.any()):
+                continue  # nothing left outside (or inside) to imprint
+            lefts[i, j], rights[i, j] = imprint_fingers(grown, g)
+            made[i, j] = True
+    return lefts, rights, made
+
+
+def left_out_reason(origin: str) -> str:
+    """Why an imprint variant could not be made, in a user's terms."""
+    voxels = dict(IMPRINT_VARIANTS).get(origin, 0.0)
+    if voxels > 0:
+        return "the object grown by a voxel fills the whole design cube (nothing left to imprint)"
+    return "the object shrunk by a voxel has no solid left (its walls are thinner than 2 voxels)"
 
 
 def tolerance_voxels(tolerance_mm: float, geometry: GeometryConfig) -> float:
@@ -337,17 +428,20 @@ def printed_copies(lefts: np.ndarray, rights: np.ndarray, tolerance_mm: float,
 
 
 def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
-                    simulated: np.ndarray | None = None, moved: np.ndarray | None = None) -> np.ndarray:
+                    simulated: np.ndarray | None = None, moved: np.ndarray | None = None, *,
+                    made: np.ndarray | None = None) -> np.ndarray:
     """Candidate order per object, best first.
 
     feasible: [B, K] bool; predicted: [B, K, 11] probabilities; simulated: [B, K, 11] 0/1 or None;
-    moved: [C, B, K, 11] 0/1 outcomes of C moved copies of each candidate, or None.
-    Keys, most important first: feasible, simulated trials passed (when given; averaged with the
-    moved copies' when those are given), mean predicted probability, lower candidate index.
-    Returns [B, K] int indices.
+    moved: [C, B, K, 11] 0/1 outcomes of C moved copies of each candidate, or None; made: [B, K]
+    bool, False for a candidate that could not be made (``imprint_candidates``), or None (all).
+    Keys, most important first: made, feasible, simulated trials passed (when given; averaged
+    with the moved copies' when those are given), mean predicted probability, lower candidate
+    index.  Returns [B, K] int indices.
     """
     feasible = np.asarray(feasible, bool)
     b, k = feasible.shape
+    made = np.ones((b, k), bool) if made is None else np.asarray(made, bool)
     pred = np.asarray(predicted, np.float64).mean(axis=-1)
     sim = (np.zeros((b, k)) if simulated is None
            else np.asarray(simulated, np.float64).sum(axis=-1))
@@ -358,18 +452,61 @@ def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
         sim = (sim + moved.sum(axis=0)) / (1 + len(moved))
     index = np.broadcast_to(np.arange(k), (b, k))
     # np.lexsort sorts ascending by the last key first
-    return np.lexsort((index, -pred, -sim, ~feasible), axis=-1)
+    return np.lexsort((index, -pred, -sim, ~feasible, ~made), axis=-1)
 
 
 # --------------------------------------------------------------------------------------------
 # helpers
 
 
-def _load_trained_nets(run_dir) -> TrainedNets:
-    """TrainedNets of the newest checkpoint (lazy import: design with params= never touches orbax)."""
-    from f2f_jax.train.checkpoint import load_trained_nets  # orbax: not for design(params=...)
+_SHIPPED_NETS: TrainedNets | None = None
 
-    return load_trained_nets(run_dir)
+
+def _load_trained_nets(run_dir) -> TrainedNets:
+    """The nets design() runs when no params are given: ``run_dir``'s newest checkpoint, else
+    ``$F2F_RUN_DIR``'s, else the weights that ship with the package (read once per process, and
+    said once in the log).  Lazy imports: design with params= never touches orbax."""
+    global _SHIPPED_NETS
+    if run_dir is not None or os.environ.get("F2F_RUN_DIR"):
+        from f2f_jax.train.checkpoint import load_trained_nets  # orbax: not for design(params=...)
+
+        return load_trained_nets(run_dir)
+    if _SHIPPED_NETS is None:
+        from f2f_jax.train.weights import load_weights, weights_info
+
+        _SHIPPED_NETS = load_weights()
+        info = weights_info()
+        log.warning("design: no run given (run_dir, $F2F_RUN_DIR): using the weights shipped with "
+                    "f2f_jax (%s, commit %s, seed %s)", info.get("provenance", {}).get("command"),
+                    info.get("commit"), info["config"]["train"].get("seed"))
+    return _SHIPPED_NETS
+
+
+def _is_mesh_like(x) -> bool:
+    return isinstance(x, (trimesh.Trimesh, str, os.PathLike))
+
+
+def _as_meshes(obj) -> tuple[list | None, bool]:
+    """(meshes or paths, single) when ``obj`` is a mesh, a path or a list of them; (None, _) for
+    anything else (read as TSDF arrays by ``_as_objects``)."""
+    if _is_mesh_like(obj):
+        return [obj], True
+    if isinstance(obj, (list, tuple)) and obj and all(_is_mesh_like(x) for x in obj):
+        return list(obj), False
+    return None, False
+
+
+def _mesh_objects(meshes, g: GeometryConfig, scale, units) -> tuple[np.ndarray, list[Placement]]:
+    """Meshes or mesh files -> object volumes [B, R, R, R] and their placements."""
+    from f2f_jax.data.sources import load_mesh  # trimesh file readers: only for paths
+
+    volumes, placements = [], []
+    for item in meshes:
+        mesh = item if isinstance(item, trimesh.Trimesh) else load_mesh(item)
+        tsdf, placement = object_volume(mesh, g, scale=scale, units=units)
+        volumes.append(tsdf)
+        placements.append(placement)
+    return np.stack(volumes), placements
 
 
 def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:

@@ -89,7 +89,7 @@ def _propose_from(fingers):
 
 def test_design_sphere_single(models, sphere_tsdf):
     # f2f_jax.design is the function even after the designer module was imported (as above)
-    pair = f2f_jax.design(sphere_tsdf, params=models)
+    pair = f2f_jax.design(sphere_tsdf, params=models, candidates=1, verify=False)
     assert isinstance(pair, design_module.FingerPair)
     assert pair.left.shape == pair.right.shape == (R, R, R)
     assert pair.left.dtype == pair.right.dtype == np.float32
@@ -112,7 +112,8 @@ def test_design_sphere_single(models, sphere_tsdf):
 
 def test_design_candidates_pick_best_feasible(models, sphere_tsdf):
     k, key = 8, 3
-    pair = design_module.design(sphere_tsdf, params=models, candidates=k, key=key)
+    pair = design_module.design(sphere_tsdf, params=models, candidates=k, key=key,
+                                verify=False)
     # the same candidates, scored independently
     lefts, rights = design_module.propose(models, sphere_tsdf[None], design_module.as_key(key), k)
     assert np.abs(lefts[0, 1:] - lefts[0, :1]).max() > 0, "latent noise made no new candidates"
@@ -132,7 +133,8 @@ def test_design_filters_infeasible_and_ranks(models, sphere_tsdf, monkeypatch):
     fingers, feasible = _constructed_candidates()
     monkeypatch.setattr(design_module, "propose", _propose_from(fingers))
     monkeypatch.setattr(design_module, "predict", _fake_predict)
-    pair = design_module.design(sphere_tsdf, params=models, candidates=len(fingers))
+    pair = design_module.design(sphere_tsdf, params=models, candidates=len(fingers),
+                                verify=False)
     post = np.stack([largest_component(f) for f in fingers])
     assert [is_feasible(f) for f in post] == feasible.tolist()  # the construction is right
     frac = (post < 0).mean(axis=(1, 2, 3))
@@ -152,7 +154,8 @@ def test_design_no_feasible_candidate_warns(models, sphere_tsdf, monkeypatch):
     monkeypatch.setattr(design_module, "propose", _propose_from(bad))
     monkeypatch.setattr(design_module, "predict", _fake_predict)
     with pytest.warns(design_module.InfeasibleDesignWarning, match="none of the 3 candidates"):
-        pair = design_module.design(sphere_tsdf, params=models, candidates=len(bad))
+        pair = design_module.design(sphere_tsdf, params=models, candidates=len(bad),
+                                    verify=False)
     assert not pair.feasible and pair.n_feasible == 0
     frac = (np.stack([largest_component(f) for f in bad]) < 0).mean(axis=(1, 2, 3))
     assert pair.candidate == frac.argmax()
@@ -182,7 +185,7 @@ def test_rank_candidates_keys():
 
 def test_design_batch_returns_list(models, sphere_tsdf, box_tsdf):
     objs = np.stack([sphere_tsdf, box_tsdf])
-    pairs = design_module.design(objs, params=models, candidates=2, key=1)
+    pairs = design_module.design(objs, params=models, candidates=2, key=1, verify=False)
     assert isinstance(pairs, list) and len(pairs) == 2
     for pair, obj in zip(pairs, objs):
         np.testing.assert_array_equal(pair.object, obj)
@@ -195,7 +198,7 @@ def test_export_stl_millimetres_watertight(models, sphere_tsdf, monkeypatch, tmp
     cands = np.stack([left, right])  # two candidates; both feasible
     monkeypatch.setattr(design_module, "propose",
                         lambda m, o, k, c, noise=0.0: (cands[None].copy(), cands[None, ::-1].copy()))
-    pair = design_module.design(sphere_tsdf, params=models, candidates=2)
+    pair = design_module.design(sphere_tsdf, params=models, candidates=2, verify=False)
     assert pair.feasible
     paths = pair.export_stl(tmp_path / "stl")
     assert [p.name for p in paths] == ["left.stl", "right.stl"]
@@ -304,8 +307,9 @@ def test_verified_pool_holds_the_imprints_and_never_loses_to_them(models, sphere
     assert pair.simulated[0] == 1 and pair.simulated.sum() >= alone.sum()
     assert pair.scores()["origin"] == pair.origin and pair.origin in str(pair)
     # without verify the pool is the generator's alone, unless asked for
-    assert design_module.design(sphere_tsdf, params=models, candidates=2).n_candidates == 2
     assert design_module.design(sphere_tsdf, params=models, candidates=2,
+                                verify=False).n_candidates == 2
+    assert design_module.design(sphere_tsdf, params=models, candidates=2, verify=False,
                                 imprint=True).n_candidates == 5
 
 
@@ -359,7 +363,7 @@ def test_tolerance_picks_the_design_whose_outcome_survives_printing(models, sphe
                          tolerance=0.15, copies=2, key=3)
     np.testing.assert_array_equal(np.stack(seen[1:]), np.stack(first))  # seeded by the key
     with pytest.raises(ValueError, match="verify"):
-        design_module.design(sphere_tsdf, params=models, tolerance=0.15)
+        design_module.design(sphere_tsdf, params=models, verify=False, tolerance=0.15)
     for bad in ({"tolerance": -0.1}, {"tolerance": float("nan")}, {"copies": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             design_module.design(sphere_tsdf, params=models, verify=True, **bad)
@@ -422,7 +426,8 @@ def test_simulate_moved_shares_fields_across_an_objects_candidates(models, spher
 
 
 def test_imprint_variants_fit_looser_and_tighter(sphere_tsdf):
-    lefts, rights = design_module.imprint_candidates(sphere_tsdf[None])
+    lefts, rights, made = design_module.imprint_candidates(sphere_tsdf[None])
+    assert made.all()
     assert lefts.shape == rights.shape == (1, len(design_module.IMPRINT_VARIANTS), R, R, R)
     exact = imprint_fingers(sphere_tsdf)
     np.testing.assert_array_equal(lefts[0, 0], exact[0])
@@ -490,3 +495,53 @@ def test_simulate_candidates_follows_the_configured_trials(models, sphere_tsdf, 
         np.array([[True, False]]), "mujoco", progress=False)
     assert out.shape == (1, 2, 1) and out.dtype == np.uint8
     assert out[0, :, 0].tolist() == [1, 0]
+
+
+# ---------------------------------------------------------------- meshes, scale modes, defaults
+
+
+def test_design_takes_a_mesh_at_its_real_size(models, tmp_path):
+    """A mesh (object or path) goes in directly; the pair says how it was placed, the STL header
+    and scores.json say it, and a TSDF refuses scale options."""
+    box = trimesh.creation.box((40.0, 30.0, 20.0))
+    path = tmp_path / "part.stl"
+    box.export(path)
+    from_path, from_mesh = design_module.design([path, box], params=models, candidates=1,
+                                                verify=False, scale="real", units="mm")
+    np.testing.assert_array_equal(from_path.object, from_mesh.object)
+    assert from_path.placement.mode == "real" and from_path.placement.units == "mm"
+    np.testing.assert_allclose(from_path.placement.size_m, (0.04, 0.03, 0.02), rtol=1e-9)
+    assert from_path.scores()["object_scale"]["object_size_mm"] == [40.0, 30.0, 20.0]
+    fit = design_module.design(box, params=models, candidates=1, verify=False, scale="fit")
+    assert fit.placement.mode == "fit" and (fit.object < 0).sum() > (from_mesh.object < 0).sum()
+    with pytest.raises(ValueError, match="TSDF"):
+        design_module.design(fit.object, params=models, verify=False, scale="fit")
+    with pytest.raises(ValueError, match="scale"):
+        design_module.design(box, params=models, verify=False, scale="squash")
+
+
+def test_stl_header_names_the_object_and_its_scale(models, tmp_path):
+    box = trimesh.creation.box((40.0, 30.0, 20.0))
+    pair = design_module.design(box, params=models, candidates=1, verify=False, imprint=True,
+                                scale="real", units="mm")
+    assert pair.feasible
+    left, right = pair.export_stl(tmp_path, name="part.stl")
+    header = left.read_bytes()[:80].decode("ascii")
+    assert header.startswith("f2f_jax left finger (mm) for part.stl: real size 40.0x30.0x20.0 mm")
+    assert right.read_bytes()[:80].decode("ascii").startswith("f2f_jax right finger")
+    assert trimesh.load(left).is_watertight
+
+
+def test_cli_and_api_share_their_defaults():
+    import inspect
+
+    from f2f_jax.cli import design as cli
+    from f2f_jax.geometry import SCALES, UNITS
+
+    params = inspect.signature(design_module.design).parameters
+    assert params["candidates"].default == cli.DEFAULT_CANDIDATES == design_module.DEFAULT_CANDIDATES
+    assert params["verify"].default is cli.DEFAULT_VERIFY is design_module.DEFAULT_VERIFY is True
+    assert cli.SCALES == SCALES and cli.UNITS == tuple(UNITS)
+    p = cli._design_parser()
+    args = p.parse_args(["m.stl", "--out", "o"])
+    assert args.candidates == cli.DEFAULT_CANDIDATES and args.verify is True

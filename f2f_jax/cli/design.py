@@ -1,14 +1,18 @@
 """The ``f2f-design`` command.
 
-``f2f-design MESH --out DIR``: design a finger pair for one mesh with a trained run and write
+``f2f-design MESH --out DIR``: design a finger pair for one mesh and write
 
-    DIR/left.stl, DIR/right.stl   fingers with their mount plates, watertight, millimetres
+    DIR/left.stl, DIR/right.stl   fingers with their mount plates, watertight, millimetres; the
+                                  STL header names the object and how it was scaled
     DIR/design.png                the object held by the fingers, three views, outcome boxes
     DIR/scores.json               predicted (and simulated) outcome per trial name, feasibility,
-                                  the checkpoint and the input file; with --tolerance MM the
-                                  trials passed by each moved copy and their mean
+                                  the checkpoint, the input file and the object's placement
+                                  (scale mode, factor, size in mm), pool candidates left out;
+                                  with --tolerance MM the trials passed by each moved copy
 
-Everything is written into a hidden sibling directory first and renamed to DIR at the end, so a
+The defaults are ``f2f_jax.design``'s (the verified pool: ``designer.DEFAULT_CANDIDATES``
+candidates and the object's imprints, simulated); with no --run-dir and no $F2F_RUN_DIR the
+weights shipped with the package design.  Everything is written into a hidden sibling directory first and renamed to DIR at the end, so a
 failure leaves nothing behind.  Errors (missing or unreadable mesh, no checkpoint, a volume that
 cannot be designed for) print one line to stderr and exit with status 2.
 """
@@ -16,6 +20,7 @@ cannot be designed for) print one line to stderr and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import shutil
@@ -27,23 +32,38 @@ from pathlib import Path
 from f2f_jax.cli import reproducible  # no JAX until reproducible_xla runs
 from f2f_jax.config import BACKENDS  # numpy only: --help stays quick
 
+# design()'s defaults (f2f_jax.designer imports JAX, so they are repeated here; a test checks
+# that they agree) and geometry.SCALES / UNITS
+DEFAULT_CANDIDATES = 16
+DEFAULT_VERIFY = True
+SCALES = ("stretch", "fit", "real")
+UNITS = ("m", "cm", "mm", "in")
+
 EXIT_ERROR = 2
 
 
 def _design_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="f2f-design",
-        description="Design a pair of parallel-jaw gripper fingers for an object mesh with a "
-                    "trained f2f_jax run; writes left.stl, right.stl, design.png and scores.json.")
-    p.add_argument("mesh", type=Path, help="object mesh (.obj, .stl, .ply, .glb, .gltf, .off); any "
-                   "units: it is stretched per axis to fill the 6 cm design cube")
+        description="Design a pair of parallel-jaw gripper fingers for an object mesh; writes "
+                    "left.stl, right.stl, design.png and scores.json.")
+    p.add_argument("mesh", type=Path, help="object mesh (.obj, .stl, .ply, .glb, .gltf, .off)")
+    p.add_argument("--scale", choices=SCALES, default=None,
+                   help="how the mesh is placed in the 6 cm design cube: 'stretch' each axis to "
+                        "fill it (the paper's convention: the fingers fit a stretched object), "
+                        "'fit' one factor for all axes (shape kept; the factor is reported), "
+                        "'real' the mesh's own size (needs --units; at most 57 mm per axis). "
+                        "Default: as the nets' training objects were placed (stretch)")
+    p.add_argument("--units", choices=UNITS, default=None,
+                   help="the mesh's units, for --scale real (implies it when --scale is not given)")
     p.add_argument("--out", type=Path, required=True, help="output directory (must not exist or be "
                    "empty, unless --force)")
     p.add_argument("--run-dir", type=Path, default=None, help="co-training run whose newest "
-                   "checkpoint designs (default: $F2F_RUN_DIR or runs/cotrain)")
-    p.add_argument("--candidates", type=int, default=8, help="designs sampled (latent noise) and "
-                   "ranked; default 8")
-    p.add_argument("--verify", action=argparse.BooleanOptionalAction, default=True,
+                   "checkpoint designs (default: $F2F_RUN_DIR, else the weights shipped with "
+                   "the package)")
+    p.add_argument("--candidates", type=int, default=DEFAULT_CANDIDATES,
+                   help=f"designs sampled (latent noise) and ranked; default {DEFAULT_CANDIDATES}")
+    p.add_argument("--verify", action=argparse.BooleanOptionalAction, default=DEFAULT_VERIFY,
                    help="simulate the feasible candidates and rank by simulated outcome (default on)")
     p.add_argument("--imprint", action=argparse.BooleanOptionalAction, default=None,
                    help="also rank the object's imprint pair and two variants of it, so a verified "
@@ -73,9 +93,9 @@ def _design_parser() -> argparse.ArgumentParser:
 
 
 def _load_trained_nets(run_dir):
-    from f2f_jax.train.checkpoint import load_trained_nets  # orbax: loaded only once the flags are good
+    from f2f_jax.designer import _load_trained_nets  # run_dir, $F2F_RUN_DIR or shipped weights
 
-    return load_trained_nets(run_dir)
+    return _load_trained_nets(run_dir)
 
 
 def _fail(message: str) -> int:
@@ -100,6 +120,13 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--copies must be >= 1, got {args.copies}")
     if args.xla_threads < 0:
         return _fail(f"--xla-threads must be >= 0, got {args.xla_threads}")
+    if args.units is not None and args.scale is None:
+        args.scale = "real"
+    if args.scale == "real" and args.units is None:
+        return _fail("--scale real needs the mesh's units: --units m, cm, mm or in")
+    if args.units is not None and args.scale != "real":
+        return _fail(f"--units reads the mesh at its real size; --scale {args.scale} sizes it to "
+                     "the design cube (drop --units, or use --scale real)")
     out: Path = args.out
     if out.exists() and not out.is_dir():
         return _fail(f"--out {out} exists and is not a directory")
@@ -132,9 +159,10 @@ def _run_design(args) -> int:
 
     from f2f_jax import designer as design_module
     from f2f_jax.config import TRIAL_NAMES
-    from f2f_jax.geometry import mesh_to_tsdf
+    from f2f_jax.geometry import object_volume
 
-    obj = mesh_to_tsdf(mesh, nets.config.geometry, name=str(args.mesh))
+    obj, placement = object_volume(mesh, nets.config.geometry, scale=args.scale,
+                                   units=args.units, name=str(args.mesh))
     executor = executor_from_cli(args) if args.verify else "threads"
     with warnings.catch_warnings():
         # the one-line error below says it; the warning would repeat it
@@ -143,6 +171,8 @@ def _run_design(args) -> int:
                                     candidates=args.candidates, verify=args.verify,
                                     backend=args.backend, imprint=args.imprint,
                                     executor=executor, tolerance=args.tolerance, copies=args.copies)
+    pair = dataclasses.replace(pair, placement=placement)
+    print(f"f2f-design: {placement.describe()}", file=sys.stderr)
     if not pair.feasible:
         return _fail(f"no feasible finger pair among {pair.n_candidates} candidates for {args.mesh} "
                      f"(best predicted mean {pair.predicted_mean:.2f}); try more --candidates or "
@@ -153,7 +183,7 @@ def _run_design(args) -> int:
     tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
-        pair.export_stl(tmp)
+        pair.export_stl(tmp, name=Path(args.mesh).name)
         pair.render(tmp / "design.png", title=f"{Path(args.mesh).name}: {pair._headline()}")
         scores = pair.scores()
         scores.pop("source")  # recorded as "checkpoint"
