@@ -1,4 +1,4 @@
-"""How much of the imprint fingers' grasp survives the shape auto-encoder? (issue 18)
+"""How much of the imprint fingers' grasp survives the shape auto-encoder?
 
 The generator never outputs fingers directly: it outputs two latents, and the shape auto-encoder's
 decoder turns them into volumes. It is pretrained to put out the encoder's latents of the imprint

@@ -1,4 +1,4 @@
-"""Can a fitness net learn to rank one object's designs, given many of them? (issue 18)
+"""Can a fitness net learn to rank one object's designs, given many of them?
 
 Co-training climbs the fitness net, so it only helps where the net ranks one object's candidate
 designs as the simulator does; the runs' own nets do not (within-object Spearman ~0,

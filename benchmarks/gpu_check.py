@@ -1,4 +1,4 @@
-"""The GPU check of issue 16: every accelerator figure in one command and one JSON.
+"""The GPU check: every accelerator figure in one command and one JSON.
 
     python benchmarks/gpu_check.py --out gpu_check.json         # one GPU: <= 11 minutes end to end
     python benchmarks/gpu_check.py --cpu --tiny --out dry.json   # dry run on a CPU (minutes)
@@ -8,13 +8,13 @@ out of time or fails is recorded with its output's tail, and the next one still 
 
 1. ``sim_throughput.py --backends mujoco,warp``: plain MuJoCo on the host's cores (fast and
    reference presets) and MuJoCo Warp on the same imprint triples tiled to each of ``--sizes``
-   (default 256 and 2,048: on an H200, session 25, warp compiled for 70 s and then ran 23
+   (default 256 and 2,048: on an H200 on 2026-12-04, warp compiled for 70 s and then ran 23
    evaluations/s under ``reference``, so 8,192 candidates alone take ~6 minutes), under each of
    ``--warp-presets`` (default reference and fast: every phase in full, at 2 ms Euler or 4 ms
    implicitfast): full evaluations/s, environment steps/s, compile seconds apart, grasp success
    and agreement with plain MuJoCo, the device's name.
 2. ``sim_agreement.py --presets P reference --backends warp mujoco`` (P: ``--agreement-preset``,
-   default fast, the default's figure; session 25 measured reference: 99.25%): MuJoCo Warp
+   default fast, the default's figure; reference measured 99.25% on an H200): MuJoCo Warp
    against plain MuJoCo's reference on 256 mixed triples (imprint, WSG50, cut, perturbed pairs of
    64 builtin objects): per-trial, per-kind and whole-vector agreement, rates per kind.
 3. ``mjx_contacts.py --vertices 32``: MJX's environment steps/s from held grasps at
@@ -33,11 +33,11 @@ agreement triples on 1 object, MJX at batch 2).  Every step's objects are builti
 of seed 0, whose coacd pieces ship with the package: a bare machine runs no coacd (on the H200,
 24 triples and their pieces were ready in 16 s).
 
-A bare GPU machine needs the project's dependencies importable.  The device machine of this
-project has JAX, flax, optax, orbax, scipy, scikit-image, h5py, matplotlib and tqdm; the rest
+A bare GPU machine needs the project's dependencies importable.  A Python-with-JAX image
+has JAX, flax, optax, orbax, scipy, scikit-image, h5py, matplotlib and tqdm; the rest
 (mujoco, mujoco-mjx, mujoco-warp, warp-lang, trimesh, coacd, ...: 117 MB compressed, warp-lang's
-wheel alone 149 MB, over the 64 MiB a call may carry) is packed by ``benchmarks/gpu_pack.py`` into
-parts, one per call; it prints the calls, the last of which runs this script.
+wheel alone 149 MB, more than a 64 MiB transfer limit) is packed by ``benchmarks/gpu_pack.py`` into parts; it
+prints one shell line per part, the last of which runs this script.
 """
 
 from __future__ import annotations

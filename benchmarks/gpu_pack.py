@@ -1,21 +1,22 @@
-"""Pack the packages the GPU check needs for a bare device machine, in parts a call can carry.
+"""Pack Python packages for a machine with no network, in parts of at most N MiB each.
 
     python benchmarks/gpu_pack.py                 # -> .gpu_site/1, .gpu_site/2 and the commands
+    python benchmarks/gpu_pack.py --packages "mujoco==3.17.0 trimesh==5.2.0" --python 3.12
 
-The device machine of this project (see the device README) has Python 3.12 with JAX, flax,
-optax, orbax, scipy, scikit-image, h5py, matplotlib and tqdm, no network, and takes at most
-64 MiB per call.  The rest of the project's needs are larger than that: warp-lang's wheel alone
-is 149 MB.  This script does here what session 25 did by hand before its H200 run:
+For a GPU machine that has Python with JAX (and scipy, flax, ...) but no network and a limit on
+the files sent with each command: the rest of what the project imports there is larger than such
+a limit (warp-lang's wheel alone is 149 MB).  The script
 
-1. ``pip install --no-deps --target`` the packages below for CPython 3.12 on manylinux x86-64
-   (downloaded from the package index this machine reaches);
+1. ``pip install --no-deps --target`` the packages (default ``PACKAGES``: what
+   ``benchmarks/gpu_check.py`` needs beyond JAX) for CPython ``--python`` on manylinux x86-64,
+   downloaded from the package index this machine reaches;
 2. drops what no check imports (``PRUNE``: warp's examples and tests, MuJoCo Studio, test data;
    438 MiB left with warp-lang 1.19.0 and mujoco 3.17.0);
 3. ``tar | xz -6`` (111 MiB) and cuts it into parts of ``--part-mib`` (two of at most 58 MiB), each in
-   its own folder ``.gpu_site/K`` (git-ignored), one folder per ``run`` call's ``carry``;
-4. prints the commands: every call but the last copies its part to /tmp on the machine (a warm
-   machine keeps /tmp for 30 s between calls); the last joins and unpacks them into /tmp/site
-   and runs ``benchmarks/gpu_check.py`` with ``PYTHONPATH=/tmp/site:$PWD``.
+   its own folder ``.gpu_site/K`` (git-ignored), so that each folder can be sent on its own;
+4. prints one shell line per part, in order: each copies its part to /tmp/parts on the target;
+   the last also joins and unpacks them into /tmp/site and runs ``benchmarks/gpu_check.py`` with
+   ``PYTHONPATH=/tmp/site:$PWD`` (the target must keep /tmp between the lines).
 
 Packing takes ~6 minutes on two cores (most of it xz).  ``--keep`` leaves the unpacked site
 folder beside the parts for a look.
@@ -31,7 +32,7 @@ import tempfile
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-# What the project imports on the device that its image lacks (pinned as pyproject.toml's
+# What the GPU check imports that a Python-with-JAX image lacks (pinned as pyproject.toml's
 # ranges allow; warp's extra included).  websockets and importlib_resources: mujoco's and
 # etils[epath]'s needs that the image lacks.
 PACKAGES = ["mujoco==3.17.0", "mujoco-mjx==3.17.0", "mujoco-warp==3.17.0", "warp-lang==1.19.0",
@@ -76,15 +77,15 @@ def split(archive: Path, out: Path, part_bytes: int) -> list[Path]:
 
 
 def commands(parts: list[Path], check_args: str) -> list[tuple[str, str]]:
-    """(carry, command) of each device call, in order."""
+    """(folder to send, shell line to run beside it) for each part, in order."""
     out = []
     for k, part in enumerate(parts, 1):
-        carry = str(part.parent.relative_to(ROOT))
-        stash = f"mkdir -p /tmp/parts && cp {carry}/* /tmp/parts/"
+        folder = str(part.parent.relative_to(ROOT))
+        stash = f"mkdir -p /tmp/parts && cp {folder}/* /tmp/parts/"
         if k < len(parts):
-            out.append((carry, stash + " && ls -la /tmp/parts"))
+            out.append((folder, stash + " && ls -la /tmp/parts"))
         else:
-            out.append((carry, stash + " && cat /tmp/parts/*.part-* | xz -dc -T0 | tar xf - -C /tmp && "
+            out.append((folder, stash + " && cat /tmp/parts/*.part-* | xz -dc -T0 | tar xf - -C /tmp && "
                         "export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 && "
                         f"python3 benchmarks/gpu_check.py {check_args} --out $OUT/gpu_check.json "
                         "2>&1 | tee $OUT/gpu_check.log"))
@@ -94,21 +95,27 @@ def commands(parts: list[Path], check_args: str) -> list[tuple[str, str]]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--part-mib", type=int, default=58,
-                   help="MiB per part (default 58: a call carries 64 MiB with the checkout)")
+                   help="MiB per part (default 58: under a 64 MiB limit with the repository beside it)")
+    p.add_argument("--packages", default=None,
+                   help="space-separated requirements (default: what gpu_check.py needs beyond JAX)")
+    p.add_argument("--python", default="3.12", help="the target's Python version (default 3.12)")
     p.add_argument("--check-args", default="",
-                   help="arguments for gpu_check.py in the last call (default: none, its defaults)")
+                   help="arguments for gpu_check.py in the last line (default: none, its defaults)")
     p.add_argument("--keep", action="store_true", help="keep the unpacked site folder (.gpu_site/site)")
     args = p.parse_args(argv)
     if args.part_mib < 1:
         p.error("--part-mib must be >= 1")
+    packages = PACKAGES if args.packages is None else args.packages.split()
+    if not packages:
+        p.error("--packages names no package")
     if not shutil.which("xz") or not shutil.which("tar"):
         p.error("needs tar and xz on this machine")
     with tempfile.TemporaryDirectory(prefix="f2f-gpu-pack-") as tmp:
         site = Path(tmp) / "site"
         pip = [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--only-binary=:all:",
-               "--python-version", "3.12", "--implementation", "cp",
-               *[f"--platform={x}" for x in PLATFORMS], "--target", str(site), *PACKAGES]
-        print("installing for CPython 3.12, manylinux x86-64:", " ".join(PACKAGES), flush=True)
+               "--python-version", args.python, "--implementation", "cp",
+               *[f"--platform={x}" for x in PLATFORMS], "--target", str(site), *packages]
+        print(f"installing for CPython {args.python}, manylinux x86-64:", " ".join(packages), flush=True)
         subprocess.run(pip, check=True)
         left = prune(site)
         print(f"pruned: {left / 2**20:.0f} MiB left; compressing (xz -6, minutes)", flush=True)
@@ -123,10 +130,9 @@ def main(argv=None) -> int:
         if args.keep:
             shutil.copytree(site, OUT / "site")
     print(f"{size / 2**20:.0f} MiB in {len(parts)} parts under {OUT}\n")
-    for k, (carry, command) in enumerate(commands(parts, args.check_args), 1):
-        print(f"call {k}: run(carry=[\"{carry}\"], command='{command}')")
-    print("\nOne call after the other, each within 30 s of the last (the machine stays warm that long);"
-          " give the machine back after the last.")
+    for k, (folder, command) in enumerate(commands(parts, args.check_args), 1):
+        print(f"{k}. send {folder}/, then run: {command}")
+    print("\nIn order, on one machine that keeps /tmp between them.")
     return 0
 
 

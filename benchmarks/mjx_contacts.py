@@ -1,4 +1,4 @@
-"""MJX's step cost by the pieces' vertex count, in held grasps (issue 16: MJX on cheap contacts).
+"""MJX's step cost by the pieces' vertex count, in held grasps.
 
     python benchmarks/mjx_contacts.py                                  # V = 32 16 12 8, batch 64
     python benchmarks/mjx_contacts.py --vertices 32 8 --batch 64 --steps 20 --json out.json

@@ -3,7 +3,7 @@
     python benchmarks/mjx_throughput.py --triples triples.npz --sizes 64 256 1024 4096
 
 Triples (object hulls and finger volumes) come from ``--triples`` (made by ``--make N``, which
-runs coacd: minutes) so an accelerator session spends its time simulating.  Candidates are the
+runs coacd: minutes) so an accelerator's time goes to its time simulating.  Candidates are the
 triples tiled up to each batch size.  Printed per batch size: compile seconds of the grasp
 program (apart), steady grasp trials/s and environment steps/s; then full 11-trial evaluations/s
 of MJX at the largest size and of plain MuJoCo on ``--cpu-threads`` threads, and their ratio.

@@ -1,4 +1,4 @@
-"""Shared fixtures: a few canonical shapes, made once per session."""
+"""Shared fixtures: a few canonical shapes, made once per test run."""
 
 from f2f_jax.cli.reproducible import reproducible_xla
 

@@ -85,7 +85,7 @@ def test_cotrain_refuses_a_bad_set_before_any_work(tmp_path, capsys):
 
 
 def test_workstation_config_plans_100x_the_defaults_simulations_on_8x_its_objects():
-    """Issue 18's sizes: the workstation run simulates >= 100x the default run's evaluations, on
+    """The workstation's sizes: the workstation run simulates >= 100x the default run's evaluations, on
     >= 8x its objects, with designs of one object that differ a little in both data sources."""
     default, work = config.default(), config.workstation()
     plan, base = config.planned_simulations(work), config.planned_simulations(default)

@@ -1,5 +1,5 @@
-"""benchmarks/gpu_pack.py: the parts a device call carries join back into the archive, and the
-calls it prints stash every part before the last one unpacks them."""
+"""benchmarks/gpu_pack.py: the parts join back into the archive, and the lines it prints stash
+every part before the last one unpacks them."""
 
 import importlib
 
@@ -37,11 +37,11 @@ def test_prune_drops_what_no_check_imports_and_keeps_the_rest(tmp_path):
     assert left == 30
 
 
-def test_every_call_but_the_last_only_stashes_its_part(tmp_path, monkeypatch):
+def test_every_line_but_the_last_only_stashes_its_part(tmp_path, monkeypatch):
     monkeypatch.setattr(pack, "ROOT", tmp_path)
     parts = [tmp_path / ".gpu_site" / str(k) / f"site.tar.xz.part-0{k}" for k in (1, 2)]
-    calls = pack.commands(parts, "--only agreement")
-    assert [carry for carry, _ in calls] == [".gpu_site/1", ".gpu_site/2"]
-    assert "gpu_check" not in calls[0][1] and "cp .gpu_site/1/*" in calls[0][1]
-    last = calls[1][1]
+    lines = pack.commands(parts, "--only agreement")
+    assert [folder for folder, _ in lines] == [".gpu_site/1", ".gpu_site/2"]
+    assert "gpu_check" not in lines[0][1] and "cp .gpu_site/1/*" in lines[0][1]
+    last = lines[1][1]
     assert last.index("cp .gpu_site/2/*") < last.index("xz -dc") < last.index("gpu_check.py --only agreement")

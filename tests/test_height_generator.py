@@ -134,7 +134,7 @@ def test_height_generator_co_trains_against_the_fitness_net_with_an_anchor(cfg, 
     state, _ = pretrained
     fit = init_fitness(cfg, 5)
     # at co-training's own rate (a run steps the generator at generator_lr, 1e-4 by default): at
-    # this config's pretraining rate (3e-3) the carried-over Adam state makes the loss oscillate
+    # this config's pretraining rate (3e-3) the kept Adam state makes the loss oscillate
     anchored = cfg.replace(train=dataclasses.replace(cfg.train, imprint_anchor=0.1,
                                                      lr=config.get("default").train.generator_lr))
     step = S.gn_fitness_step(anchored)

@@ -75,8 +75,8 @@ def test_flat_fingers_need_more_than_the_papers_friction(cfg, sphere_object):
     left, right = (finger_hulls(f, cfg) for f in wsg50_fingers(cfg))
     slippery = peer.simulate_original(sphere_object, left, right, cfg=cfg)
     grippy_cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, finger_friction=1.0))
-    with peer.OriginalSession(grippy_cfg) as session:
-        grippy = session.simulate(sphere_object, left, right)
+    with peer.OriginalSession(grippy_cfg) as world:
+        grippy = world.simulate(sphere_object, left, right)
     assert slippery[0] == 0 and not slippery.any()
     assert grippy[0] == 1
 
@@ -112,10 +112,10 @@ def test_self_collision_switch_stops_fingers_that_meet_outside_the_object(cfg):
     closed = {}
     for collide in (False, True):
         proto = dataclasses.replace(PROTO, self_collision=collide)
-        with peer.OriginalSession(cfg, proto) as session:
-            g = session.add_gripper(left, right)
-            session._jaws(g, g.strokes)
-            closed[collide] = [session.api.getJointState(g.body, j)[0] for j in g.jaws]
+        with peer.OriginalSession(cfg, proto) as world:
+            g = world.add_gripper(left, right)
+            world._jaws(g, g.strokes)
+            closed[collide] = [world.api.getJointState(g.body, j)[0] for j in g.jaws]
     # jaw positions: travel inwards, in the x10 world (0.1 = 1 cm); colliding fingers travel less
     assert min(closed[False]) > max(closed[True]) + 0.1, closed
 
@@ -123,11 +123,11 @@ def test_self_collision_switch_stops_fingers_that_meet_outside_the_object(cfg):
 def test_engine_switches_reach_bullet_and_the_default_leaves_bullets_own(cfg):
     """The peer's default run is Bullet as the original had it (one 1/240 s step, 50 solver
     iterations); the ablations' sub-steps and iterations must reach the engine."""
-    with peer.OriginalSession(cfg) as session:
-        default = session.api.getPhysicsEngineParameters()
+    with peer.OriginalSession(cfg) as world:
+        default = world.api.getPhysicsEngineParameters()
     proto = dataclasses.replace(PROTO, substeps=4, solver_iterations=120)
-    with peer.OriginalSession(cfg, proto) as session:
-        changed = session.api.getPhysicsEngineParameters()
+    with peer.OriginalSession(cfg, proto) as world:
+        changed = world.api.getPhysicsEngineParameters()
     assert default["numSubSteps"] == 0 and default["numSolverIterations"] == 50, default
     assert default["fixedTimeStep"] == pytest.approx(1 / 240)
     assert changed["numSubSteps"] == 4 and changed["numSolverIterations"] == 120, changed

@@ -53,7 +53,7 @@ Three more switches keep the original's values by default, for ablations: ``subs
 imprint trials turn from failures into successes), ``solver_iterations`` and
 ``finger_rolling_friction`` (the fingers' rolling and spinning friction, 1 in the original's URDF).
 
-``pybullet_runs`` records, renders and times sessions; ``python benchmarks/pybullet_original.py``
+``pybullet_runs`` records, renders and times its runs; ``python benchmarks/pybullet_original.py``
 prints evaluations per second on imprint triples.  Needs the ``pybullet`` extra.
 """
 

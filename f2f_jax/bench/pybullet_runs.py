@@ -1,4 +1,4 @@
-"""Runs of the PyBullet peer (``pybullet_peer``): a session that records the poses our viewer
+"""Runs of the PyBullet peer (``pybullet_peer``): a run that records the poses our viewer
 draws, one triple simulated or rendered, many triples timed, and a convex stand-in for object
 pieces.  ``render_original`` keeps a triple's poses for ``f2f_jax.sim.view.draw_strips``: the
 same panels as our own viewer, so one triple can be seen as both simulators ran it."""
@@ -89,17 +89,17 @@ def render_original(object_hulls: Hulls, left_hulls: Hulls, right_hulls: Hulls, 
     from f2f_jax.config import TRIAL_NAMES
     from f2f_jax.sim.view import FINGER_COLOUR, OBJECT_COLOUR, Strip
 
-    with RecordingSession(cfg) as session:
-        outcome = session.simulate(object_hulls, left_hulls, right_hulls)
-        steps = session.steps
+    with RecordingSession(cfg) as world:
+        outcome = world.simulate(object_hulls, left_hulls, right_hulls)
+        steps = world.steps
         faces, colours = {}, {}
-        for k, (_, link, vertices) in enumerate(session._pieces):
+        for k, (_, link, vertices) in enumerate(world._pieces):
             try:
                 faces[k] = vertices[ConvexHull(vertices).simplices]
             except QhullError:  # a flat placeholder is not drawn
                 continue
             colours[k] = OBJECT_COLOUR if link < 0 else FINGER_COLOUR
-        frames = session.frames
+        frames = world.frames
     panels = [(f, name) for name, f in frames if name != "end"]
     trials = [f for name, f in frames if name == "end"]
     ran = [i for i in range(N_TRIALS) if i == 0 or outcome[0]]  # a dropped grasp ends the triple
@@ -120,8 +120,8 @@ def simulate_original(object_hulls: Hulls, left_hulls: Hulls, right_hulls: Hulls
     frame (``f2f_jax.geometry.hulls``, frames in config.py).  Returns [11] uint8 outcomes
     (config.TRIAL_NAMES order).  ``gui`` opens a PyBullet window and runs in real time.
     """
-    with OriginalSession(cfg, gui=gui) as session:
-        return session.simulate(object_hulls, left_hulls, right_hulls)
+    with OriginalSession(cfg, gui=gui) as world:
+        return world.simulate(object_hulls, left_hulls, right_hulls)
 
 
 def evaluate_original(objects_hulls, lefts_hulls, rights_hulls, *, cfg: Config | None = None,
@@ -139,15 +139,15 @@ def evaluate_original(objects_hulls, lefts_hulls, rights_hulls, *, cfg: Config |
     outcomes = np.zeros((len(triples), N_TRIALS), np.uint8)
     per_eval = np.zeros(len(triples), np.int64)
     per_eval_s = np.zeros(len(triples), np.float64)
-    with OriginalSession(cfg, protocol) as session:
+    with OriginalSession(cfg, protocol) as world:
         start = time.perf_counter()
         for i, (obj, left, right) in enumerate(triples):
-            before, t0 = session.steps, time.perf_counter()
-            outcomes[i] = session.simulate(obj, left, right)
-            per_eval[i] = session.steps - before
+            before, t0 = world.steps, time.perf_counter()
+            outcomes[i] = world.simulate(obj, left, right)
+            per_eval[i] = world.steps - before
             per_eval_s[i] = time.perf_counter() - t0
         seconds = time.perf_counter() - start
-        unstable, build = session.unstable, session.build_seconds
+        unstable, build = world.unstable, world.build_seconds
     n, steps = len(triples), int(per_eval.sum())
     stats = dict(evaluations=n, steps=steps, steps_per_evaluation=per_eval, seconds=seconds,
                  seconds_per_evaluation=per_eval_s, build_seconds=build,

@@ -4,7 +4,7 @@ apply before JAX starts.
 XLA on the CPU splits a convolution's or matrix product's sums over its thread pool, and JAX sizes
 that pool by the CPUs the process may run on.  Another split adds the same terms in another order,
 so a run on 8 cores and a run on 2 differ in the last bits after the first training step; training
-and the simulator's thresholds then carry the difference into other designs and other tables.
+and the simulator's thresholds then pass the difference on into other designs and other tables.
 (Measured: three VAE steps of the default config give other parameters with 1 thread than with
 2; ``tests/test_reproducible.py`` checks it on one convolution.)  The same goes for the CPU's
 vector width: code generated for AVX instead of this machine's AVX2 gives other losses.
@@ -21,8 +21,8 @@ vector width: code generated for AVX instead of this machine's AVX2 gives other 
   uninterrupted one ends.
 
 So a run's figures do not depend on how many cores its machine has.  They still depend on the
-machine: the default pretraining at seed 2 on two 2-core AMD EPYC machines (sessions 29 and 30,
-one of them a Zen 3 without AVX-512) gave auto-encoder held-out IoUs of 0.486 and 0.491, most
+machine: the default pretraining at seed 2 on two 2-core AMD EPYC machines (one of
+them a Zen 3 without AVX-512) gave auto-encoder held-out IoUs of 0.486 and 0.491, most
 likely because the CPU kernels block their sums by the cache sizes they find; no flag here fixes
 that, so another machine's run is to be compared with the README's spread over seeds.  Costs:
 training uses 2 of a bigger machine's cores (``--xla-threads 0`` lifts that, and the figures then

@@ -21,7 +21,7 @@ projective distance along w as imprints have (an imprint and its height map's TS
 same solid voxels; imprints also hold -1 in their base half, where this holds the distance).
 Through the shape auto-encoder an imprint loses ~1.9 trials of 11 (its faces move ~2 voxels);
 this generator, pretrained on imprints alone, came within 0.7 trials of them
-(``benchmarks/finger_fidelity.py``, RESULTS.md session 18).
+(``benchmarks/finger_fidelity.py``, benchmarks/RESULTS.md).
 
 Both generators answer the same calls: ``latents`` (finger codes), ``decode`` (codes -> TSDFs),
 ``imprint_distance`` (the pretraining loss and co-training anchor), ``code_range`` and

@@ -148,8 +148,8 @@ class MjxGraspSimulator:
         planes: [G, F, 4] geom-local; xpos [G, 3]; xmat [G, 3, 3]."""
         y, z = jp.asarray(self.lines[:, 0]), jp.asarray(self.lines[:, 1])
 
-        def one(carry, geom):
-            lo, hi = carry
+        def one(acc, geom):
+            lo, hi = acc
             pl, pos, mat = geom
             lower, upper, ok = x_extent(pl, mat, pos, y, z, jp)
             return (jp.where(ok, jp.minimum(lo, lower), lo), jp.where(ok, jp.maximum(hi, upper), hi)), None
@@ -172,8 +172,8 @@ class MjxGraspSimulator:
         """One lax.scan over the steps of a program: ``body(d, x) -> d`` sets the controls of a
         step from its inputs ``x`` (unbatched: every candidate is in the same phase), then MJX
         steps.  A single mjx.step in the program keeps compile time to one copy of the physics."""
-        def step(carry, x):
-            d, bad = carry
+        def step(state, x):
+            d, bad = state
             d = mjx.step(m, body(d, x))
             return (d, bad | ~self._healthy(d)), None
 
@@ -234,8 +234,8 @@ class MjxGraspSimulator:
                              lambda d: jp.float32(0.0), d)
             return d.replace(ctrl=d.ctrl.at[ids.lift_act].set(lift)), z
 
-        def step(carry, x):
-            d, bad, z_start = carry
+        def step(state, x):
+            d, bad, z_start = state
             d, z = body(d, x)
             z_start = jp.where(x[0] == self.n_settle, z, z_start)
             d = mjx.step(m, d)

@@ -149,7 +149,7 @@ def model_convex(m: mujoco.MjModel, sizes: ConvexSizes) -> list[ConvexMesh]:
 def _merged_groups(m):
     groups = _STOCK_GEOM_GROUPS(m)
     merged: dict = {}
-    finger = (np.asarray(m.geom_contype) & FINGER_BIT) != 0  # object pieces carry no contype
+    finger = (np.asarray(m.geom_contype) & FINGER_BIT) != 0  # object pieces set no contype
     for key, pairs in groups.items():
         if key.types == (GeomType.MESH, GeomType.MESH):
             for pair in pairs:

@@ -28,7 +28,7 @@ from f2f_jax.geometry.hulls import Hulls
 ASSET_DIR = Path(__file__).resolve().parents[1] / "assets" / "wsg50"
 GRIPPER_XML = ASSET_DIR / "wsg50.xml"
 
-# Collision bits (see the XML's header): the floor and the fingers each carry one bit, the object
+# Collision bits (see the XML's header): the floor and the fingers each have one bit, the object
 # accepts both; with SimConfig.finger_collisions (the default) the fingers accept the finger
 # bit too, so they also meet the other jaw's fingers; nothing else collides.
 FLOOR_BIT = 1

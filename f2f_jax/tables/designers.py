@@ -118,8 +118,8 @@ def _randemb_optimizer(net, steps: int, lr: float, objective: str):
         return p[:, 0] if objective == "grasp" else p.mean(-1)
 
     def run(gvars, fvars, obj, z0):
-        def step(carry, _):
-            z, opt_state = carry
+        def step(state, _):
+            z, opt_state = state
             grads = jax.grad(lambda z: -score(gvars, fvars, obj, z).sum())(z)
             updates, opt_state = opt.update(grads, opt_state, z)
             z = jnp.clip(optax.apply_updates(z, updates), lo, hi)

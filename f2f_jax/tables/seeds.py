@@ -56,7 +56,7 @@ def _in_subset(names: Sequence[str], objects: str) -> np.ndarray:
 
 
 # Table 1's row-against-row comparison: the summary columns, and the mean of the ten stability and
-# robustness trials (where imprints do not max out, issue 18's test of Fit2Form against Imprint).
+# robustness trials (where imprints do not max out, the test of Fit2Form against Imprint).
 SR_MEAN = "S+R mean"
 _VERSUS_COLUMNS = {"table1": ("grasp", "S avg", "R avg", SR_MEAN), "table2": figures.TABLE2_COLUMNS}
 

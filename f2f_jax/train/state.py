@@ -1,6 +1,6 @@
 """Train state and the trained models as pytrees.
 
-``TrainState`` is what one jitted step carries (parameters, BatchNorm statistics, optimiser state,
+``TrainState`` is what one jitted step takes and returns (parameters, BatchNorm statistics, optimiser state,
 step count); ``TrainedNets`` is what design and evaluation need from a run (the finger generator and the
 fitness net, with the config that sized them).
 """
