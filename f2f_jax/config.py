@@ -150,6 +150,15 @@ TRIAL_NAMES: tuple[str, ...] = (
 )
 # The simulator backends ``sim.evaluate`` runs: plain MuJoCo (threads), MJX, MuJoCo Warp.
 BACKENDS: tuple[str, ...] = ("mujoco", "mjx", "warp")
+# How a mesh is placed in the shape cube (``geometry.place_mesh``), and the units (metres per
+# unit) a real-size mesh may be in.  Here, with design()'s defaults, because f2f-design reads them
+# for its flags without importing the geometry or JAX.
+SCALES: tuple[str, ...] = ("stretch", "fit", "real")
+UNITS: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
+# design()'s and f2f-design's defaults: the verified pool (benchmarks/design_judges.py and
+# design_latency.py measure what each mode passes and costs).
+DEFAULT_CANDIDATES = 16
+DEFAULT_VERIFY = True
 
 
 @dataclass(frozen=True)

@@ -59,12 +59,17 @@ import jax
 import numpy as np
 import trimesh
 
-from f2f_jax.config import BACKENDS, TRIAL_NAMES, GeometryConfig
+from f2f_jax.config import (
+    BACKENDS,
+    DEFAULT_CANDIDATES,
+    DEFAULT_VERIFY,
+    TRIAL_NAMES,
+    GeometryConfig,
+)
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry import (
-    SCALES,
-    UNITS,
     Placement,
+    check_placement,
     check_tsdf,
     export_finger_stl,
     imprint_fingers,
@@ -89,10 +94,6 @@ log = logging.getLogger(__name__)
 IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (
     ("imprint", 0.0), ("imprint, 1 voxel looser", 1.0), ("imprint, 1 voxel tighter", -1.0))
 GENERATOR = "generator"
-# design()'s and f2f-design's defaults: the verified pool (benchmarks/design_latency.py measures
-# what each mode costs and passes).
-DEFAULT_CANDIDATES = 16
-DEFAULT_VERIFY = True
 GENERATOR_NOISE = "generator + latent noise"
 GENERATOR_HEIGHT_NOISE = "generator + height noise"  # a height-map generator's candidates
 
@@ -287,10 +288,8 @@ def design(obj, *, params: TrainedNets | None = None, key=None,
             raise ValueError("scale and units place a mesh in the design cube; a TSDF is in it "
                              "already (give the mesh, or leave them out)")
         objects, single = _as_objects(obj)
-    elif units is not None and units not in UNITS:
-        raise ValueError(f"unknown units {units!r}; choose one of {', '.join(UNITS)}")
-    elif scale is not None and scale not in SCALES:
-        raise ValueError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
+    else:
+        check_placement(scale, units)  # before the nets load
     if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 1:
         raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
     candidates = int(candidates)

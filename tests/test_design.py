@@ -541,7 +541,9 @@ def test_cli_and_api_share_their_defaults():
     params = inspect.signature(design_module.design).parameters
     assert params["candidates"].default == cli.DEFAULT_CANDIDATES == design_module.DEFAULT_CANDIDATES
     assert params["verify"].default is cli.DEFAULT_VERIFY is design_module.DEFAULT_VERIFY is True
-    assert cli.SCALES == SCALES and cli.UNITS == tuple(UNITS)
+    assert cli.SCALES == SCALES and tuple(cli.UNITS) == tuple(UNITS)
     p = cli._design_parser()
+    choices = {a.dest: a.choices for a in p._actions}
+    assert tuple(choices["scale"]) == SCALES and tuple(choices["units"]) == tuple(UNITS)
     args = p.parse_args(["m.stl", "--out", "o"])
     assert args.candidates == cli.DEFAULT_CANDIDATES and args.verify is True

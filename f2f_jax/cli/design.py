@@ -30,14 +30,8 @@ import warnings
 from pathlib import Path
 
 from f2f_jax.cli import reproducible  # no JAX until reproducible_xla runs
-from f2f_jax.config import BACKENDS  # numpy only: --help stays quick
-
-# design()'s defaults (f2f_jax.designer imports JAX, so they are repeated here; a test checks
-# that they agree) and geometry.SCALES / UNITS
-DEFAULT_CANDIDATES = 16
-DEFAULT_VERIFY = True
-SCALES = ("stretch", "fit", "real")
-UNITS = ("m", "cm", "mm", "in")
+# numpy only, --help stays quick; design()'s defaults and geometry's scale modes live there
+from f2f_jax.config import BACKENDS, DEFAULT_CANDIDATES, DEFAULT_VERIFY, SCALES, UNITS
 
 EXIT_ERROR = 2
 
@@ -54,7 +48,7 @@ def _design_parser() -> argparse.ArgumentParser:
                         "'fit' one factor for all axes (shape kept; the factor is reported), "
                         "'real' the mesh's own size (needs --units; at most 57 mm per axis). "
                         "Default: as the nets' training objects were placed (stretch)")
-    p.add_argument("--units", choices=UNITS, default=None,
+    p.add_argument("--units", choices=list(UNITS), default=None,
                    help="the mesh's units, for --scale real (implies it when --scale is not given)")
     p.add_argument("--out", type=Path, required=True, help="output directory (must not exist or be "
                    "empty, unless --force)")

@@ -20,6 +20,7 @@ from f2f_jax.geometry.tsdf import (
     SCALES,
     UNITS,
     Placement,
+    check_placement,
     check_tsdf,
     mesh_to_tsdf,
     normalize_mesh,
@@ -32,7 +33,7 @@ from f2f_jax.geometry.tsdf import (
 
 __all__ = [
     "Hulls", "finger_hulls", "hull_fit", "object_hulls", "stack_hulls",
-    "check_tsdf", "export_finger_stl", "feasibility_report", "finger_extent", "finger_from_shape",
+    "check_placement", "check_tsdf", "export_finger_stl", "feasibility_report", "finger_extent", "finger_from_shape",
     "finger_pose", "finger_with_mount", "imprint_fingers", "is_feasible", "largest_component", "postprocess",
     "mesh_to_tsdf", "normalize_mesh", "object_volume", "place_mesh", "Placement", "SCALES", "UNITS", "solid", "solid_iou", "tsdf_to_mesh", "wsg50_fingers",
 ]

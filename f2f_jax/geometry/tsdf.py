@@ -17,15 +17,12 @@ import trimesh
 from scipy import ndimage
 from skimage import measure
 
-from f2f_jax.config import GeometryConfig
+from f2f_jax.config import SCALES, UNITS, GeometryConfig
 from f2f_jax.errors import MeshError, VolumeError
 
 _SUPERSAMPLE = 3  # fine voxels per volume voxel along each axis (odd: coarse centres are fine centres)
 _MAX_EXTENT = 500.0  # mesh units; bigger than any object in metres or millimetres
 _MIN_ASPECT = 0.01  # thinnest / thickest extent; flatter meshes would be stretched 100x
-# How a mesh is placed in the shape cube (``place_mesh``), and the units a real-size mesh may be in.
-SCALES = ("stretch", "fit", "real")
-UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "in": 0.0254}
 
 
 def _label(mesh: trimesh.Trimesh, name: str | None) -> str:
@@ -114,6 +111,14 @@ class Placement:
                     uniform=self.uniform)
 
 
+def check_placement(scale: str | None, units: str | None) -> None:
+    """Raise ValueError for a scale mode or units that ``place_mesh`` does not know (None: unset)."""
+    if scale is not None and scale not in SCALES:
+        raise ValueError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
+    if units is not None and units not in UNITS:
+        raise ValueError(f"unknown units {units!r}; choose one of {', '.join(UNITS)}")
+
+
 def place_mesh(mesh: trimesh.Trimesh, cfg: GeometryConfig | None = None, *, scale: str | None = None,
                units: str | None = None, name: str | None = None) -> tuple[trimesh.Trimesh, Placement]:
     """Put a mesh into the volume's local frame: returns (the placed mesh, its ``Placement``).
@@ -130,10 +135,7 @@ def place_mesh(mesh: trimesh.Trimesh, cfg: GeometryConfig | None = None, *, scal
     cfg = cfg or GeometryConfig()
     scale = cfg.object_scale if scale is None else scale
     label = _label(mesh, name)
-    if scale not in SCALES:
-        raise ValueError(f"unknown scale {scale!r}; choose one of {', '.join(SCALES)}")
-    if units is not None and units not in UNITS:
-        raise ValueError(f"unknown units {units!r}; choose one of {', '.join(UNITS)}")
+    check_placement(scale, units)
     if not isinstance(mesh, trimesh.Trimesh):
         raise MeshError(f"{label}: expected a trimesh.Trimesh, got {type(mesh).__name__}")
     verts = np.asarray(mesh.vertices, dtype=np.float64)

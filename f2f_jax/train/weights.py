@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import datetime
 import hashlib
+import io
 import json
 import subprocess
 from pathlib import Path
@@ -135,7 +136,7 @@ def load_weights(base=None) -> TrainedNets:
     if hashlib.sha256(data).hexdigest() != meta.get("sha256"):
         raise CheckpointError(f"{npz} does not match the digest in its JSON (damaged or replaced); "
                               f"rebuild it with `{rebuild}`")
-    with np.load(npz) as z:
+    with np.load(io.BytesIO(data)) as z:  # the bytes whose digest was checked, read once
         flat = {name: z[name] for name in z.files}
     tree = unflatten(flat)
     cfg = config_from_dict(meta["config"])
