@@ -101,9 +101,8 @@ def main(argv=None) -> int:
     except ImportError:
         p.error("the PyBullet judge needs the pybullet extra: pip install -e '.[pybullet]'")
 
-    from protocol_fidelity import run_peer  # this folder's script (sys.path[0])
-
     from f2f_jax import config, sim
+    from f2f_jax.bench.pybullet_runs import run_peer
     from f2f_jax import designer as design_module
     from f2f_jax.geometry import imprint_fingers
     from f2f_jax.geometry.finger_tiling import finger_hulls
@@ -114,7 +113,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     nets = _nets(args.run_dir)
     cfg = config.with_sim_preset(nets.config, "fast")
-    ref = config.with_sim_preset(nets.config, "reference")  # the peer's geometry, as protocol_fidelity
+    ref = config.with_sim_preset(nets.config, "reference")  # the peer's geometry (protocol_fidelity)
     objs, names = _objects(args, cfg.geometry)
     t0 = time.perf_counter()
     pieces = object_pieces_many(list(objs), cfg, workers=args.workers, progress=True)

@@ -36,8 +36,8 @@ of seed 0, whose coacd pieces ship with the package: a bare machine runs no coac
 A bare GPU machine needs the project's dependencies importable.  A Python-with-JAX image
 has JAX, flax, optax, orbax, scipy, scikit-image, h5py, matplotlib and tqdm; the rest
 (mujoco, mujoco-mjx, mujoco-warp, warp-lang, trimesh, coacd, ...: 117 MB compressed, warp-lang's
-wheel alone 149 MB, more than a 64 MiB transfer limit) is packed by ``benchmarks/gpu_pack.py`` into parts; it
-prints one shell line per part, the last of which runs this script.
+wheel alone 149 MB, more than a 64 MiB transfer limit) is packed by ``tools/gpu_pack.py`` into parts;
+it prints one shell line per part, the last of which runs this script.
 """
 
 from __future__ import annotations

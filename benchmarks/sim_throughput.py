@@ -4,6 +4,9 @@
     python benchmarks/sim_throughput.py --n 16 --per-core-n 8 --json out.json
     python benchmarks/sim_throughput.py --objects DIR --n 16  # a mesh directory, e.g. random_urdfs
     python benchmarks/sim_throughput.py --n 64 --per-core-n 0 --executor ray   # + Ray's overhead
+    python benchmarks/sim_throughput.py --n 64 --per-core-n 0 --no-pybullet --meshing-n 0 \
+        --backends mujoco,mjx --batch-sizes 64 256 1024 4096 --grasp-only   # MJX on a GPU
+    python benchmarks/sim_throughput.py --peer-shapes convex --peer-repeat 3   # the PyBullet peer alone
 
 Every simulator gets the same triples: imprint finger pairs of builtin objects (or of the first
 meshes of ``--objects DIR``).  Object pieces are made beforehand (coacd, cached on disk) and not
@@ -13,8 +16,8 @@ tiles option on all of them (``tiles_meshing_s``).
 
 Measured in this one run: the default ("fast") preset and the ``reference`` preset of plain
 MuJoCo on all ``--threads`` cores over ``--n`` triples, and each on one thread over the first
-``--per-core-n`` of them, the PyBullet original protocol (``benchmarks/pybullet_original.py``,
-one core, on the reference's hulls; needs the ``pybullet`` extra, else skipped) on the same
+``--per-core-n`` of them, the PyBullet original protocol (``f2f_jax.bench.pybullet_peer``, one
+core, on the reference's hulls; needs the ``pybullet`` extra, else skipped) on the same
 subset.  Printed: evaluations/s, per core, physics steps/s, steps per evaluation and grasp
 success per row, and the per-core ratios fast / reference and fast / PyBullet.
 
@@ -35,6 +38,16 @@ plain MuJoCo's reference outcomes of the same triples.
 MJX has one contact path (convex meshes, its separating-axis test): ``mjx_mesh_env_steps_per_s``
 is that path's figure, and ``mjx_env_steps_per_s`` the same until a cheaper contact geometry
 exists.  warp runs on every local GPU, else on warp's CPU device (slow: for checks only).
+Each batched row also prints its evaluations/s over plain MuJoCo's all-thread row of the same
+preset (``<label>_ratio_vs_mujoco``).  ``--grasp-only`` adds, per MJX batch size, the grasp
+program alone (settle, close, lift, hold; compile timed apart): grasps/s, environment steps/s
+and the share held (``mjx_grasp_rows``).
+
+``--peer-shapes convex|coacd`` times the PyBullet peer alone instead, on the imprint triples of
+four convex shapes (sphere, box, cylinder, cone), each ``--peer-repeat`` times, their objects one
+hull each (``bench.pybullet_runs.convex_object_hulls``) or coacd pieces: per triple its pieces and
+steps, then evaluations/s, steps/s, steps per evaluation, the seconds spent building bodies and the
+held and failed grasps apart (a failed grasp ends its evaluation after one attempt).
 """
 
 from __future__ import annotations
@@ -53,6 +66,7 @@ import numpy as np
 
 from f2f_jax import config, sim
 from f2f_jax.bench.agreement import load_objects
+from f2f_jax.cli import sim_options
 from f2f_jax.geometry import imprint_fingers
 from f2f_jax.geometry.finger_tiling import finger_hulls, remembered_finger_hulls
 from f2f_jax.geometry.pieces import object_pieces, object_pieces_many
@@ -76,6 +90,54 @@ def meshing_seconds(tsdfs, cfg) -> np.ndarray:
     return np.array(seconds)
 
 
+def peer_shapes(method: str, repeat: int) -> None:
+    """``--peer-shapes``: the PyBullet peer alone on four convex shapes' imprint triples, one
+    process (one core); prints the table the module docstring describes."""
+    import importlib.metadata
+
+    import trimesh
+
+    from f2f_jax.bench.pybullet_runs import convex_object_hulls, evaluate_original
+    from f2f_jax.config import TRIAL_NAMES
+    from f2f_jax.geometry import mesh_to_tsdf, object_hulls
+
+    cfg = config.default()
+    shapes = {  # convex shapes that rest still on the floor (each stretched to fill the cube)
+        "sphere": trimesh.creation.icosphere(subdivisions=3, radius=0.03),
+        "box": trimesh.creation.box(extents=(0.06, 0.06, 0.06)),
+        "cylinder": trimesh.creation.cylinder(radius=0.03, height=0.06, sections=32),
+        "cone": trimesh.creation.cone(radius=0.03, height=0.06, sections=32),
+    }
+    objects, lefts, rights, names = [], [], [], []
+    for name, mesh in shapes.items():
+        tsdf = mesh_to_tsdf(mesh, cfg.geometry, name=name)
+        left, right = imprint_fingers(tsdf, cfg.geometry)
+        obj = object_hulls(tsdf, cfg.geometry) if method == "coacd" else convex_object_hulls(tsdf, cfg)
+        objects += [obj] * repeat
+        lefts += [finger_hulls(left, cfg.geometry)] * repeat
+        rights += [finger_hulls(right, cfg.geometry)] * repeat
+        names += [name] * repeat
+    outcomes, stats = evaluate_original(objects, lefts, rights, cfg=cfg)
+    print(f"pybullet {importlib.metadata.version('pybullet')} | DIRECT client, one process "
+          f"(one core) | {platform.processor() or platform.machine()} | dt 1/240 | world x10")
+    print("triple      pieces(o/l/r)  steps   " + " ".join(f"{t:>4}" for t in TRIAL_NAMES))
+    for i, name in enumerate(names):
+        pieces = f"{objects[i].n_pieces}/{lefts[i].n_pieces}/{rights[i].n_pieces}"
+        print(f"{name:<10}  {pieces:<13}  {stats['steps_per_evaluation'][i]:>6}  "
+              + " ".join(f"{v:>4}" for v in outcomes[i]))
+    print(f"{stats['evaluations']} evaluations, {stats['steps']} steps in {stats['seconds']:.1f} s: "
+          f"{stats['evaluations_per_second']:.3f} evaluations/s, {stats['steps_per_second']:.0f} steps/s, "
+          f"{stats['steps'] / stats['evaluations']:.0f} steps/evaluation, "
+          f"{stats['build_seconds']:.2f} s building bodies, {stats['unstable']} unstable")
+    for label, mask in (("grasp held, all 11 trials run", outcomes[:, 0] == 1),
+                        ("grasp failed, one attempt", outcomes[:, 0] == 0)):
+        if mask.any():
+            steps = stats["steps_per_evaluation"][mask].sum()
+            secs = stats["seconds_per_evaluation"][mask].sum()
+            print(f"{label}: {mask.sum()} evaluations, {steps / mask.sum():.0f} steps each, "
+                  f"{mask.sum() / secs:.3f} evaluations/s, {steps / secs:.0f} steps/s")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--n", type=int, default=32, help="triples for the all-core runs (default 32)")
@@ -97,8 +159,24 @@ def main(argv=None) -> int:
                    help="comma-separated, of mujoco,mjx,warp (default mujoco: plain MuJoCo only)")
     p.add_argument("--batch-sizes", type=int, nargs="+", default=[64],
                    help="candidates per batch for mjx and warp (default 64)")
-    ray_executor.add_cli_arguments(p)
+    p.add_argument("--grasp-only", action="store_true",
+                   help="with mjx in --backends: also time MJX's grasp program alone per batch size")
+    p.add_argument("--peer-shapes", choices=("convex", "coacd"), default=None,
+                   help="time only the PyBullet peer, on four convex shapes' imprint triples whose "
+                        "objects are one hull each (convex) or coacd pieces")
+    p.add_argument("--peer-repeat", type=int, default=1,
+                   help="--peer-shapes: evaluate each triple this many times (default 1)")
+    sim_options.add_cli_arguments(p)
     args = p.parse_args(argv)
+    if args.peer_shapes is not None:
+        if args.peer_repeat < 1:
+            p.error("--peer-repeat must be >= 1")
+        try:
+            import pybullet  # noqa: F401
+        except ImportError:
+            p.error("--peer-shapes needs the pybullet extra: pip install -e '.[pybullet]'")
+        peer_shapes(args.peer_shapes, args.peer_repeat)
+        return 0
     if args.n < 1 or args.per_core_n < 0 or args.threads < 1 or args.meshing_n < 0:
         p.error("--n and --threads must be >= 1, --per-core-n and --meshing-n >= 0")
     if args.objects is not None and not args.objects.is_dir():
@@ -154,8 +232,8 @@ def main(argv=None) -> int:
     def run(label, name, n, threads):
         cfg = presets[name]
         start = time.perf_counter()
-        out, info = sim.evaluate(objs[:n], lefts[:n], rights[:n], cfg=cfg, threads=threads,
-                                 object_hulls=pieces[name][:n], return_info=True, progress=False)
+        out, info = sim.evaluate_with_info(objs[:n], lefts[:n], rights[:n], cfg=cfg, threads=threads,
+                                           object_hulls=pieces[name][:n], progress=False)
         rows[label] = dict(evals=n, seconds=time.perf_counter() - start, steps=info.total_steps,
                            workers=threads, grasp_rate=float(out[:, 0].mean()), outcomes=out)
 
@@ -172,9 +250,9 @@ def main(argv=None) -> int:
                      object_hulls=pieces["fast"][:warm], task_size=1, progress=False)
         ray_info["start_s"] = time.perf_counter() - start
         start = time.perf_counter()
-        out, info = sim.evaluate(objs, lefts, rights, cfg=presets["fast"], executor="ray",
-                                 object_hulls=pieces["fast"], task_size=args.task_size,
-                                 return_info=True, progress=False)
+        out, info = sim.evaluate_with_info(objs, lefts, rights, cfg=presets["fast"], executor="ray",
+                                           object_hulls=pieces["fast"], task_size=args.task_size,
+                                           progress=False)
         rows["fast ray"] = dict(evals=len(objs), seconds=time.perf_counter() - start,
                                 steps=info.total_steps, workers=cpus,
                                 grasp_rate=float(out[:, 0].mean()))
@@ -244,7 +322,8 @@ def main(argv=None) -> int:
                 batched_rows(backend, objs, lefts, rights, pieces[name], rows["reference"]["outcomes"],
                              presets[name], args.batch_sizes, threads=args.threads, result=result,
                              json_path=args.json,
-                             label=backend if name == "reference" else f"{backend}_{name}")
+                             label=backend if name == "reference" else f"{backend}_{name}",
+                             mujoco_evals_per_s=rate(name), grasp_only=args.grasp_only)
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
         print(f"wrote {args.json}")
@@ -252,11 +331,13 @@ def main(argv=None) -> int:
 
 
 def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *, threads, result,
-                 json_path=None, label=None) -> None:
+                 json_path=None, label=None, mujoco_evals_per_s=None, grasp_only=False) -> None:
     """Full 11-trial evaluations of the triples tiled to each batch size on ``backend`` under
     ``cfg``; prints a table and adds its JSON keys (``<label>_...``, label defaults to the
     backend) to ``result``, written to ``json_path`` after every row.  Agreement is with
-    ``reference``, plain MuJoCo's outcomes of the same triples."""
+    ``reference``, plain MuJoCo's outcomes of the same triples; the ratio with
+    ``mujoco_evals_per_s``, plain MuJoCo's all-thread rate under the same preset.  ``grasp_only``
+    (MJX): the grasp program alone at each size too (``<label>_grasp_rows``)."""
     from f2f_jax.sim.mujoco_cpu import batched_model_options
     from f2f_jax.sim.scene import build_model
 
@@ -304,8 +385,42 @@ def batched_rows(backend, objs, lefts, rights, pieces, reference, cfg, sizes, *,
         out[f"{label}_env_steps_per_s"] = best["env_steps_per_s"]
         if label == "mjx":  # one contact path so far: convex meshes
             out["mjx_mesh_env_steps_per_s"] = best["env_steps_per_s"]
+        if mujoco_evals_per_s:
+            out[f"{label}_ratio_vs_mujoco"] = best["evals_per_s"] / mujoco_evals_per_s
         if json_path:
             json_path.write_text(json.dumps(out, indent=1))
+    if mujoco_evals_per_s:
+        print(f"{label}: best {out[f'{label}_evals_per_s']:.2f} evaluations/s = "
+              f"{out[f'{label}_ratio_vs_mujoco']:.1f}x plain MuJoCo on {threads} threads "
+              f"({mujoco_evals_per_s:.2f}/s, same preset)")
+    if grasp_only and backend == "mjx":
+        grasp_rows(batched, models, cfg, sizes, out, label)
+        if json_path:
+            json_path.write_text(json.dumps(out, indent=1))
+
+
+def grasp_rows(batched, models, cfg, sizes, out: dict, label: str) -> None:
+    """MJX's grasp program alone (settle, close, lift, hold) on the models tiled to each size:
+    compile (the first call) apart from a second, timed call."""
+    sim_ = batched.simulator_for(models[0], cfg)
+    steps = sim_.n_settle + sim_.n_close + len(sim_.lift_ctrl) + sim_.n_hold
+    print(f"\n{label}, the grasp program alone ({steps} steps a grasp):")
+    print(f"{'batch':>6s} {'compile s':>10s} {'grasp s':>8s} {'grasps/s':>9s} {'env steps/s':>12s} {'held':>5s}")
+    out[f"{label}_grasp_rows"] = []
+    for size in sizes:
+        b = sim_.batch([models[i] for i in np.arange(size) % len(models)])
+        yaw = np.zeros(size, np.float32)
+        before = sim_.compile_seconds
+        sim_._call("grasp", size, b.fields, b.convex, b.planes, yaw)
+        compile_s = sim_.compile_seconds - before
+        start = time.perf_counter()
+        held = sim_._call("grasp", size, b.fields, b.convex, b.planes, yaw)[0]
+        sec = time.perf_counter() - start
+        row = dict(batch=size, compile_s=compile_s, seconds=sec, grasps_per_s=size / sec,
+                   env_steps_per_s=size * steps / sec, held=float(np.mean(np.asarray(held))))
+        out[f"{label}_grasp_rows"].append(row)
+        print(f"{size:6d} {compile_s:10.1f} {sec:8.2f} {row['grasps_per_s']:9.1f} "
+              f"{row['env_steps_per_s']:12.0f} {row['held']:5.2f}", flush=True)
 
 
 if __name__ == "__main__":

@@ -34,6 +34,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from f2f_jax import config
+    from f2f_jax.cli import overrides
     from f2f_jax.data import builtin_objects
     from f2f_jax.geometry import imprint_fingers, mesh_to_tsdf
     from f2f_jax.train import steps as S
@@ -46,7 +47,7 @@ def main(argv=None) -> int:
     )
 
     try:
-        cfg = config.override(config.get(args.config), args.set)
+        cfg = overrides.override(config.get(args.config), args.set)
     except ValueError as e:
         p.error(str(e))
     batch = args.batch or cfg.train.fn_batch_size

@@ -33,7 +33,7 @@ How a design is chosen, per object:
    copies: both fingers' height maps moved by a smooth random field of that standard deviation
    (``nets.inference.perturbed_heights``), a printer's error, the same fields for all of one
    object's candidates (they are compared under the same errors).  One trial of a design turns on
-   tenths of a millimetre of finger (``benchmarks/sim_retest.py --perturb heights``: a field of
+   tenths of a millimetre of finger (``research/sim_retest.py --perturb heights``: a field of
    0.15 mm flips 5% of trials), so a pick by its exact outcome alone is partly luck; a pick by
    its mean over the copies is one whose outcome survives printing, and
    ``FingerPair.simulated_mean`` says what to expect of the printed fingers.
@@ -72,31 +72,26 @@ from f2f_jax.geometry import (
     check_placement,
     check_tsdf,
     export_finger_stl,
-    imprint_fingers,
     object_volume,
     postprocess,
 )
 from f2f_jax.nets import RESOLUTION
-from f2f_jax.nets.inference import (
-    HEIGHT_NOISE_GRID,
-    LATENT_NOISE,
-    TrainedNets,
-    as_key,
-    perturbed_heights,
-    predict,
-    propose,
+from f2f_jax.design_pool import (  # noqa: F401  (the pool's steps, also reachable from here)
+    GENERATOR,
+    GENERATOR_HEIGHT_NOISE,
+    GENERATOR_NOISE,
+    IMPRINT_VARIANTS,
+    imprint_candidates,
+    left_out_reason,
+    printed_copies,
+    rank_candidates,
+    simulate_candidates,
+    simulate_moved,
+    tolerance_voxels,
 )
+from f2f_jax.nets.inference import LATENT_NOISE, TrainedNets, as_key, predict, propose
 
 log = logging.getLogger(__name__)
-
-# The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
-# Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
-IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (
-    ("imprint", 0.0), ("imprint, 1 voxel looser", 1.0), ("imprint, 1 voxel tighter", -1.0))
-GENERATOR = "generator"
-GENERATOR_NOISE = "generator + latent noise"
-GENERATOR_HEIGHT_NOISE = "generator + height noise"  # a height-map generator's candidates
-
 
 class InfeasibleDesignWarning(UserWarning):
     """No candidate of an object was printable; the best-predicted infeasible one was returned."""
@@ -272,7 +267,7 @@ def design(obj, *, params: TrainedNets | None = None, key=None,
         on average: 0.3 moves them ~0.15 mm; 0, the default: no copies), and rank by the mean over
         the exact pair and its copies; costs 1 + copies times the simulation.  The copies' fields
         are drawn from ``key``, one per copy, object and side, shared by the object's candidates.
-        ``benchmarks/design_tolerance.py`` measures what it buys.
+        ``research/design_tolerance.py`` measures what it buys.
     scale, units: how a mesh is placed in the cube (``geometry.place_mesh``): "stretch", "fit" or
         "real" (with units "m", "cm", "mm" or "in"); None: as the nets' training objects were
         placed (``config.geometry.object_scale``).  Only for meshes.
@@ -290,19 +285,8 @@ def design(obj, *, params: TrainedNets | None = None, key=None,
         objects, single = _as_objects(obj)
     else:
         check_placement(scale, units)  # before the nets load
-    if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 1:
-        raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
+    _check_options(candidates, backend, noise, tolerance, verify, copies)
     candidates = int(candidates)
-    if backend not in BACKENDS:
-        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
-    if not np.isfinite(noise) or noise < 0:
-        raise ValueError(f"noise must be a finite standard deviation >= 0, got {noise!r}")
-    if not np.isfinite(tolerance) or tolerance < 0:
-        raise ValueError(f"tolerance must be a finite standard deviation >= 0 (mm), got {tolerance!r}")
-    if tolerance > 0 and not verify:
-        raise ValueError("tolerance simulates moved copies of the candidates: it needs verify=True")
-    if isinstance(copies, bool) or not isinstance(copies, (int, np.integer)) or copies < 1:
-        raise ValueError(f"copies must be an integer >= 1, got {copies!r}")
     nets = _load_trained_nets(run_dir) if params is None else params
     if not isinstance(nets, TrainedNets):
         raise TypeError(f"params must be f2f_jax.nets.inference.TrainedNets (or None to load a "
@@ -367,94 +351,6 @@ def design(obj, *, params: TrainedNets | None = None, key=None,
 
 
 # --------------------------------------------------------------------------------------------
-# steps (module-level so that tests and benchmarks can time or replace each one)
-
-
-def imprint_candidates(objects: np.ndarray, geometry: GeometryConfig | None = None
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The imprint pairs of ``IMPRINT_VARIANTS``: objects [B, R, R, R] -> lefts, rights
-    [B, V, R, R, R] float32 and made [B, V] bool.
-
-    A variant grows the object by ``voxels`` before imprinting (its TSDF, in units of the
-    truncation distance, lowered by voxels x voxel size / truncation).  Where that leaves no
-    volume to imprint (a box that fills the cube, grown by a voxel, has no voxel outside; a thin
-    wall, shrunk by one, may vanish), the variant is not made: its fingers are empty volumes and
-    ``made`` is False there, so the pool leaves it out.  The plain imprint (0 voxels) is made for
-    every object that ``check_tsdf`` accepts."""
-    g = geometry or GeometryConfig()
-    step = g.voxel_size / g.truncation
-    objects = np.asarray(objects, np.float32)
-    b, v, r = len(objects), len(IMPRINT_VARIANTS), g.resolution
-    lefts = np.ones((b, v, r, r, r), np.float32)
-    rights = np.ones((b, v, r, r, r), np.float32)
-    made = np.zeros((b, v), bool)
-    for i, obj in enumerate(objects):
-        for j, (_, voxels) in enumerate(IMPRINT_VARIANTS):
-            grown = np.clip(obj - voxels * step, -1.0, 1.0).astype(np.float32)
-            solid = grown < 0
-            if voxels != 0 and (solid.all() or not solid.any()):
-                continue  # nothing left outside (or inside) to imprint
-            lefts[i, j], rights[i, j] = imprint_fingers(grown, g)
-            made[i, j] = True
-    return lefts, rights, made
-
-
-def left_out_reason(origin: str) -> str:
-    """Why an imprint variant could not be made, in a user's terms."""
-    voxels = dict(IMPRINT_VARIANTS).get(origin, 0.0)
-    if voxels > 0:
-        return "the object grown by a voxel fills the whole design cube (nothing left to imprint)"
-    return "the object shrunk by a voxel has no solid left (its walls are thinner than 2 voxels)"
-
-
-def tolerance_voxels(tolerance_mm: float, geometry: GeometryConfig) -> float:
-    """A printer's tolerance in millimetres -> the moving field's standard deviation in voxels."""
-    return tolerance_mm / (1000.0 * geometry.voxel_size)
-
-
-def printed_copies(lefts: np.ndarray, rights: np.ndarray, tolerance_mm: float,
-                   geometry: GeometryConfig, copies: int, seed) -> tuple[np.ndarray, np.ndarray]:
-    """Fingers [N, R, R, R] -> ``copies`` moved copies of them, [copies x N, R, R, R] copy-major
-    (``perturbed_heights`` with fields of ``tolerance_mm``).  The fields depend only on ``seed``
-    (any numpy seed), the copy, the side and the object's index: called with the same seed, the
-    designs of every row of a table on the same N objects are moved alike (paired)."""
-    n = len(lefts)
-    grids = np.random.default_rng(seed).standard_normal(
-        (copies, 2, n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
-    sd, tr = tolerance_voxels(tolerance_mm, geometry), geometry.truncation_voxels
-    return (np.concatenate([perturbed_heights(lefts, sd, tr, grid=grids[c, 0]) for c in range(copies)]),
-            np.concatenate([perturbed_heights(rights, sd, tr, grid=grids[c, 1]) for c in range(copies)]))
-
-
-def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
-                    simulated: np.ndarray | None = None, moved: np.ndarray | None = None, *,
-                    made: np.ndarray | None = None) -> np.ndarray:
-    """Candidate order per object, best first.
-
-    feasible: [B, K] bool; predicted: [B, K, 11] probabilities; simulated: [B, K, 11] 0/1 or None;
-    moved: [C, B, K, 11] 0/1 outcomes of C moved copies of each candidate, or None; made: [B, K]
-    bool, False for a candidate that could not be made (``imprint_candidates``), or None (all).
-    Keys, most important first: made, feasible, simulated trials passed (when given; averaged
-    with the moved copies' when those are given), mean predicted probability, lower candidate
-    index.  Returns [B, K] int indices.
-    """
-    feasible = np.asarray(feasible, bool)
-    b, k = feasible.shape
-    made = np.ones((b, k), bool) if made is None else np.asarray(made, bool)
-    pred = np.asarray(predicted, np.float64).mean(axis=-1)
-    sim = (np.zeros((b, k)) if simulated is None
-           else np.asarray(simulated, np.float64).sum(axis=-1))
-    if moved is not None:
-        if simulated is None:
-            raise ValueError("moved copies are ranked with the exact pairs' simulated outcomes")
-        moved = np.asarray(moved, np.float64).sum(axis=-1)
-        sim = (sim + moved.sum(axis=0)) / (1 + len(moved))
-    index = np.broadcast_to(np.arange(k), (b, k))
-    # np.lexsort sorts ascending by the last key first
-    return np.lexsort((index, -pred, -sim, ~feasible, ~made), axis=-1)
-
-
-# --------------------------------------------------------------------------------------------
 # helpers
 
 
@@ -479,6 +375,22 @@ def _load_trained_nets(run_dir) -> TrainedNets:
                     "f2f_jax (%s, commit %s, seed %s)", info.get("provenance", {}).get("command"),
                     info.get("commit"), info["config"]["train"].get("seed"))
     return _SHIPPED_NETS
+
+
+def _check_options(candidates, backend, noise, tolerance, verify, copies) -> None:
+    """design()'s options, refused with a ValueError that names the bad one."""
+    if isinstance(candidates, bool) or not isinstance(candidates, (int, np.integer)) or candidates < 1:
+        raise ValueError(f"candidates must be an integer >= 1, got {candidates!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
+    if not np.isfinite(noise) or noise < 0:
+        raise ValueError(f"noise must be a finite standard deviation >= 0, got {noise!r}")
+    if not np.isfinite(tolerance) or tolerance < 0:
+        raise ValueError(f"tolerance must be a finite standard deviation >= 0 (mm), got {tolerance!r}")
+    if tolerance > 0 and not verify:
+        raise ValueError("tolerance simulates moved copies of the candidates: it needs verify=True")
+    if isinstance(copies, bool) or not isinstance(copies, (int, np.integer)) or copies < 1:
+        raise ValueError(f"copies must be an integer >= 1, got {copies!r}")
 
 
 def _is_mesh_like(x) -> bool:
@@ -524,48 +436,3 @@ def _as_objects(obj_tsdf) -> tuple[np.ndarray, bool]:
         return np.stack([check_tsdf(a, f"obj_tsdf[{i}]", g) for i, a in enumerate(arr)]), False
     raise VolumeError(f"obj_tsdf: expected one volume [{r}, {r}, {r}] or a batch [B, {r}, {r}, {r}], "
                       f"got shape {arr.shape}")
-
-
-def simulate_candidates(nets, objects, lefts, rights, feasible, backend, progress=None,
-                        object_hulls=None, executor: str = "threads") -> np.ndarray:
-    """Simulated outcomes [B, K, T] uint8 (T = ``nets.config.sim.n_trials``, 11 for the whole
-    protocol): the feasible candidates in one evaluate call, zeros for the rest (an infeasible
-    finger scores all 0 by the protocol).  object_hulls: optional precomputed hulls, one per object."""
-    from f2f_jax.sim import evaluate  # MuJoCo only when verifying: `import f2f_jax` stays light
-
-    b, k = feasible.shape
-    out = np.zeros((b, k, nets.config.sim.n_trials), np.uint8)
-    ib, ik = np.nonzero(feasible)
-    if len(ib):
-        hulls = None if object_hulls is None else [object_hulls[i] for i in ib]
-        out[ib, ik] = evaluate(objects[ib], lefts[ib, ik], rights[ib, ik], backend=backend,
-                               cfg=nets.config, progress=progress, object_hulls=hulls,
-                               executor=executor)
-    return out
-
-
-def simulate_moved(nets, objects, lefts, rights, feasible, backend, sd_voxels: float, copies: int,
-                   rng: np.random.Generator, progress=None, object_hulls=None,
-                   executor: str = "threads", shared: bool = False) -> np.ndarray:
-    """Simulated outcomes [C, B, K, T] uint8 of C = ``copies`` copies of the feasible candidates,
-    each finger's height map moved by a smooth field of ``sd_voxels``
-    (``nets.inference.perturbed_heights``, drawn from ``rng``); zeros for infeasible candidates.
-    shared=False: every finger its own field; True: one field per copy, object and side, the same
-    for all of that object's candidates (common random numbers: candidates are compared under the
-    same printing error).  One ``simulate_candidates`` call per copy, so memory holds one copy at
-    a time."""
-    ib, ik = np.nonzero(feasible)
-    tr = nets.config.geometry.truncation_voxels
-    out = []
-    for _ in range(copies):
-        moved_l, moved_r = lefts.copy(), rights.copy()
-        if shared:
-            grids = rng.standard_normal((len(objects), 2, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
-            moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, grid=grids[ib, 0])
-            moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, grid=grids[ib, 1])
-        else:
-            moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, rng)
-            moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, rng)
-        out.append(simulate_candidates(nets, objects, moved_l, moved_r, feasible, backend, progress,
-                                       object_hulls, executor=executor))
-    return np.stack(out)

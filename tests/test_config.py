@@ -1,28 +1,29 @@
-"""Config from the command line: ``config.override`` (``--set SECTION.FIELD=VALUE``)."""
+"""Config from the command line: ``cli.overrides.override`` (``--set SECTION.FIELD=VALUE``)."""
 
 import dataclasses
 import json
 
 import pytest
 
-from f2f_jax import config
+from f2f_jax import config, run_plan
+from f2f_jax.cli import overrides
 from f2f_jax.errors import CheckpointError
 from f2f_jax.train.cotrain import CoTrainRun
 from f2f_jax.train.run_dir import write_record
 
 
 def test_override_reads_each_field_as_its_type():
-    cfg = config.override(config.default(), [
+    cfg = overrides.override(config.default(), [
         "train.generator_lr=3e-4", "sim.timestep=0.002", "net.fitness_fc=(256, 128)",
-        "sim.finger_collisions=false", "train.objectives=GS", "train.cycles=7",
+        "sim.shared_settle=false", "train.objectives=GS", "train.cycles=7",
         "sim.stability_directions=[[1, 0, 0], [0, 1, 0]]"])
     assert cfg.train.generator_lr == pytest.approx(3e-4) and cfg.sim.timestep == 0.002
-    assert cfg.net.fitness_fc == (256, 128) and cfg.sim.finger_collisions is False
+    assert cfg.net.fitness_fc == (256, 128) and cfg.sim.shared_settle is False
     assert cfg.train.objectives == "GS" and cfg.train.cycles == 7 and isinstance(cfg.train.cycles, int)
     assert cfg.sim.stability_directions == ((1, 0, 0), (0, 1, 0))
-    assert config.override(cfg, ["train.generator_lr=None"]).train.generator_lr is None
+    assert overrides.override(cfg, ["train.generator_lr=None"]).train.generator_lr is None
     assert cfg.geometry == config.default().geometry  # nothing else moved
-    assert config.override(cfg, []) == cfg
+    assert overrides.override(cfg, []) == cfg
 
 
 @pytest.mark.parametrize("bad, words", [
@@ -32,17 +33,17 @@ def test_override_reads_each_field_as_its_type():
     ("train.cycles=1.5", "train.cycles takes an int"),
     ("train.cycles=None", "not None"),
     ("sim.timestep=fast", "sim.timestep takes a float"),
-    ("sim.finger_collisions=2", "true or false"),
+    ("sim.shared_settle=2", "true or false"),
     ("net.fitness_fc=3", "takes a tuple"),
 ])
 def test_override_refuses_what_the_field_cannot_hold(bad, words):
     with pytest.raises(ValueError, match=words.replace("(", r"\(").replace(")", r"\)")):
-        config.override(config.default(), [bad])
+        overrides.override(config.default(), [bad])
 
 
 def test_a_run_directory_keeps_its_overrides(tmp_path):
     """A run made with --set records the changed field; resuming without it is refused, naming it."""
-    cfg = config.override(config.tiny(), ["train.generator_lr=3e-4"])
+    cfg = overrides.override(config.tiny(), ["train.generator_lr=3e-4"])
     run = CoTrainRun(tmp_path, cfg, config_name="tiny", progress=False)
     write_record(tmp_path, run._run_meta())
     assert json.loads((tmp_path / "run.json").read_text())["config"]["train"]["generator_lr"] == 3e-4
@@ -52,7 +53,7 @@ def test_a_run_directory_keeps_its_overrides(tmp_path):
     # the refusal names the flags that resume the run, and they do
     flags = str(refused.value).split("resume it with ")[1].split("--set ")[1:]
     assert [f.strip() for f in flags] == ["train.generator_lr=0.0003"]
-    CoTrainRun(tmp_path, config.override(config.tiny(), [f.strip() for f in flags]), config_name="tiny",
+    CoTrainRun(tmp_path, overrides.override(config.tiny(), [f.strip() for f in flags]), config_name="tiny",
                progress=False)
 
 
@@ -67,12 +68,12 @@ def test_resume_flags_round_trip_through_override():
                                   generator_lr=None if tiny.train.generator_lr else 2.5e-4),
         net=dataclasses.replace(tiny.net, generator="latent" if tiny.net.generator == "heights" else "heights",
                                 fitness_fc=(96, 48)),
-        sim=dataclasses.replace(tiny.sim, finger_collisions=not tiny.sim.finger_collisions))
+        sim=dataclasses.replace(tiny.sim, shared_settle=not tiny.sim.shared_settle))
     old, now = meta_config(recorded), meta_config(config.tiny())
     fields = differing_fields(old, now)
     assert len(fields) == 5
     flags = [f.strip().strip("'") for f in set_flags(old, fields).split("--set ")[1:]]
-    assert meta_config(config.override(config.tiny(), flags)) == old
+    assert meta_config(overrides.override(config.tiny(), flags)) == old
 
 
 def test_cotrain_refuses_a_bad_set_before_any_work(tmp_path, capsys):
@@ -88,13 +89,13 @@ def test_workstation_config_plans_100x_the_defaults_simulations_on_8x_its_object
     """The workstation's sizes: the workstation run simulates >= 100x the default run's evaluations, on
     >= 8x its objects, with designs of one object that differ a little in both data sources."""
     default, work = config.default(), config.workstation()
-    plan, base = config.planned_simulations(work), config.planned_simulations(default)
+    plan, base = run_plan.planned_simulations(work), run_plan.planned_simulations(default)
     assert base == {"dataset": 51 * 3, "baselines": 26, "cycles": 640, "heldout": 26, "total": 845}
     assert plan["total"] >= 100 * base["total"] and work.train.n_objects >= 8 * default.train.n_objects
     assert work.train.perturbed_pairs > 0 and work.train.cycle_candidates > 1
     assert (work.net, work.sim, work.geometry) == (default.net, default.sim, default.geometry)
     assert config.get("workstation") == work
-    assert config.planned_simulations(default, n_objects=10)["dataset"] == 8 * 3  # 2 held out
+    assert run_plan.planned_simulations(default, n_objects=10)["dataset"] == 8 * 3  # 2 held out
 
 
 def test_cotrain_says_what_a_run_simulates_and_warns_when_its_rows_outgrow_the_machine():

@@ -4,7 +4,6 @@ corrupt are skipped; bad command lines fail cleanly without touching a run."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import shutil
@@ -210,14 +209,13 @@ def test_config_round_trips_through_checkpoint_json(name):
 
 
 def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, capsys):
-    """--from-pretrained: the cycles of a GS run with the imprint anchor and a longer fitness refit
-    start from the whole run's pretrained models and data, without the whole run's designs; other
-    settings are refused."""
+    """--from-pretrained: the cycles of a GS run of one epoch per net and cycle start from the whole
+    run's pretrained models and data, without the whole run's designs; other settings are refused."""
     from f2f_jax.cli import cotrain as cli
     src, _ = uninterrupted
     run_dir = tmp_path / "gs"
-    args = ["--config", "tiny", "--quiet", "--cycles", "2", "--objectives", "GS", "--imprint-anchor", "1",
-            "--set", "train.fn_refit_steps=6", "--from-pretrained", str(src), "--run-dir", str(run_dir)]
+    args = ["--config", "tiny", "--quiet", "--cycles", "2", "--objectives", "GS",
+            "--set", "train.max_epochs=1", "--from-pretrained", str(src), "--run-dir", str(run_dir)]
     assert cli.main(args) == 0, capsys.readouterr().err
     from f2f_jax.dataset.store import GraspStore
 
@@ -226,11 +224,11 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
     assert (rows < 0).sum() == (src_rows < 0).sum() and (rows == 1).sum() == (rows == 2).sum() == 16
     log = _log(run_dir)
     assert sum(r.get("stage") == "ae" and r.get("epoch") == 1 for r in log) == 1  # copied, not rerun
-    # cycle 2's 32 designs make 8 half-batches: 6 steps a refit epoch, where the cap is 4
-    assert {r["steps"] for r in log if r.get("stage") == "fn" and r.get("cycle") == 2} == {6}
+    # cycle 2's 32 designs make 8 half-batches, capped at 4 steps a refit epoch; one epoch per net
+    assert [r["steps"] for r in log if r.get("stage") == "fn" and r.get("cycle") == 2] == [4]
     assert config.tiny().train.max_steps_per_epoch == 4
     gs = [r for r in log if r.get("stage") == "gn" and r.get("cycle") == 2]
-    assert gs and {"fitness_loss", "anchor"} <= gs[0].keys()
+    assert [r["epoch"] for r in gs] == [1] and len(gs[0]["fitness"]) == 11
     a, b = load_trained_nets(src / "pretrained"), load_trained_nets(run_dir / "pretrained")
     for x, y in zip(jax.tree.leaves(a.generator), jax.tree.leaves(b.generator)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -245,93 +243,44 @@ def test_ablation_starts_from_another_runs_pretraining(uninterrupted, tmp_path, 
     (tmp_path / "used" / "x").write_text("x")
     assert cli.main([*args[:-1], str(tmp_path / "used")]) == 2
     assert "not empty" in capsys.readouterr().err
-
-
-def test_imprint_control_spends_cotrainings_steps_on_imprints(uninterrupted, tmp_path):
-    """objectives="imprint", co-training's control: from the same pretraining, each cycle's designs
-    are simulated and stored, the generator takes as many steps as co-training's at its epochs'
-    cap, on imprint pairs (its pretraining loss, no fitness term), and the fitness net is never
-    refitted."""
-    src, _ = uninterrupted
-    run_dir = tmp_path / "control"
-    cfg = config.override(config.tiny(), ["train.objectives=imprint"])
-    run = CoTrainRun(run_dir, cfg, config_name="tiny", progress=False)
-    run.fork_pretrained(src)
-    run.run(CYCLES)
-    t = cfg.train
-    gn = [r for r in _log(run_dir) if r.get("stage") == "gn" and r.get("cycle", 0) > 0]
-    warm = [r["cycle"] for r in _log(src) if r.get("stage") == "gn" and r.get("cycle", 0) > 0]
-    steps = -(-len(run.train_idx) // t.cotrain_batch_size)  # the co-training epoch's batches
-    assert sorted({r["cycle"] for r in gn}) == sorted(set(warm)) and warm
-    assert [r["epoch"] for r in gn] == list(range(1, t.max_epochs + 1)) * len(set(warm))
-    assert all(r["steps"] == min(steps, t.max_steps_per_epoch) and "fitness" not in r for r in gn)
-    assert not any(r.get("stage") == "fn" and r.get("cycle", 0) > 0 for r in _log(run_dir))
-    from f2f_jax.dataset.store import GraspStore
-
-    rows = GraspStore(run_dir / "store").read(("cycle",))["cycle"]
-    assert [int((rows == c).sum()) for c in range(1, CYCLES + 1)] == [t.objects_per_cycle] * CYCLES
-    pre, ctrl = load_trained_nets(src / "pretrained"), load_trained_nets(run_dir)
-    assert ctrl.objectives == "imprint"
-    for x, y in zip(jax.tree.leaves(pre.fitness), jax.tree.leaves(ctrl.fitness)):
-        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-    assert any(not np.array_equal(np.asarray(x), np.asarray(y))
-               for x, y in zip(jax.tree.leaves(pre.generator), jax.tree.leaves(ctrl.generator)))
-    # its loss is the pretraining's, at the level the pretraining left it (the co-trained
-    # generator's loss is a negative mean fitness)
-    last_pre = [r["loss"] for r in _log(src) if r.get("stage") == "gn" and r.get("cycle") == 0][-1]
-    assert 0 < gn[-1]["loss"] < 2 * last_pre
-
-
-def test_annealing_epochs_run_at_the_generator_learning_rate(tmp_path):
-    """train.gn_anneal_epochs: pretraining epochs after gn_epochs, at generator_lr. With that rate
-    0 the annealing epoch leaves the generator as the last epoch at lr left it (which moved it);
-    the kept pretrained models are those after the annealing."""
-    tiny = config.tiny()
-    cfg = tiny.replace(train=dataclasses.replace(tiny.train, gn_anneal_epochs=1, generator_lr=0.0))
-    run_dir = tmp_path / "anneal"
-    CoTrainRun(run_dir, cfg, config_name="tiny", progress=False).run(0)
-    gn = [r for r in _log(run_dir) if r.get("stage") == "gn" and r.get("cycle") == 0]
-    assert [r["epoch"] for r in gn] == list(range(1, tiny.train.gn_epochs + 2))
-    ckpt = Checkpoints(run_dir / "checkpoints")
-    models = {}
-    for index in ckpt.steps():
-        _, m, meta = ckpt._restore(index, None)
-        if meta["stage"] == "gn":
-            models[meta["epoch"]] = m["generator"]["params"]
-    last, before, annealed = (models[tiny.train.gn_epochs + k] for k in (0, -1, 1))
-    leaves = lambda tree: [np.asarray(x) for x in jax.tree.leaves(tree)]  # noqa: E731
-    assert any(not np.array_equal(x, y) for x, y in zip(leaves(before), leaves(last)))
-    for x, y in zip(leaves(last), leaves(annealed)):
-        np.testing.assert_array_equal(x, y)
-    kept = Checkpoints(run_dir / "pretrained" / "checkpoints").restore(None)
-    assert kept[2]["epoch"] == tiny.train.gn_epochs + 1
+    # a run directory started from one run does not go on from another
+    elsewhere = [*args[:-3], str(tmp_path / "used"), "--run-dir", str(run_dir)]
+    assert cli.main(elsewhere) == 2
+    assert "was not started from" in capsys.readouterr().err
 
 
 def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted, tmp_path, capsys):
-    """experiments/evaluate.py --neighbourhood: both generators' candidates simulated on the run's
-    held-out objects plus new built-in ones, and the paired gain is the difference of the two."""
+    """experiments/evaluate.py, then research/generator_candidates.py --neighbourhood beside it:
+    both generators' candidates simulated on the run's held-out objects plus new built-in ones,
+    and the paired gain is the difference of the two."""
+    import importlib
+
     from f2f_jax.cli import evaluate as cli
 
+    study = importlib.import_module("research.generator_candidates")
     run_dir, _ = uninterrupted
     out = tmp_path / "eval"
-    args = ["--run-dir", str(run_dir), "--extra", f"cycle 0={run_dir / 'pretrained'}", "--objects", "1",
-            "--fresh", "1", "--seed", "5", "--neighbourhood", "2", "--tables", "1", "--no-randemb",
-            "--design-search", "1", "--fitness-ranking", "2", "--quiet", "--out", str(out)]
+    common = ["--run-dir", str(run_dir), "--extra", f"cycle 0={run_dir / 'pretrained'}", "--objects", "1",
+              "--fresh", "1", "--seed", "5", "--quiet", "--out", str(out)]
+    args = [*common, "--tables", "1", "--no-randemb", "--design-search", "1"]
+    study_args = [*common, "--neighbourhood", "2", "--fitness-ranking", "2"]
     assert cli.main(args) == 0, capsys.readouterr().err
+    assert study.main(study_args) == 0, capsys.readouterr().err
     res = json.loads((out / "results.json").read_text())
-    assert res["objects"] == 2 and res["names"][1].startswith("fresh/")
-    assert res["fitness_ranking"]["candidates"] == 2 and res["fitness_ranking"]["objects"] == 2
-    judged = res["fitness_ranking"]["judges"]["cycle 0"]  # the extra's fitness net, same candidates
-    assert judged["trials_mean"] == res["fitness_ranking"]["trials_mean"]
+    cand = json.loads((out / "candidates.json").read_text())
+    assert res["objects"] == 2 and res["names"][1].startswith("fresh/") and cand["names"] == res["names"]
+    assert cand["fitness_ranking"]["candidates"] == 2 and cand["fitness_ranking"]["objects"] == 2
+    judged = cand["fitness_ranking"]["judges"]["cycle 0"]  # the extra's fitness net, same candidates
+    assert judged["trials_mean"] == cand["fitness_ranking"]["trials_mean"]
     assert judged["spearman_gain"]["objects"] <= 2
-    assert res["fitness_ranking"]["nearest_own"]["trials_picked"] == res["fitness_ranking"]["trials_first"]
+    assert cand["fitness_ranking"]["nearest_own"]["trials_picked"] == cand["fitness_ranking"]["trials_first"]
     # the design pool (the generator's candidate and the imprints, verified) passes, object by
     # object, at least the trials the Imprint row's fingers pass: they are in its pool
     outcomes = res["table1"]["outcomes"]
     pool = [sum(map(int, o)) for o in outcomes["Design pool (1 + imprints, verify)"]]
     assert all(a >= b for a, b in zip(pool, [sum(map(int, o)) for o in outcomes["Imprint"]]))
     assert "Fit2Form + search (1, verify)" in outcomes
-    nb = res["neighbourhood"]
+    nb = cand["neighbourhood"]
     (first, after), (name, before) = nb["stats"].items()
     assert name == "cycle 0" and after["candidates"] == 2 and after["objects"] == 2
     assert np.asarray(nb["outcomes"][first]).shape == (2, 2, 11)
@@ -344,21 +293,24 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
     # the seed table reads what evaluate.py wrote: one run given twice has no spread
     from f2f_jax.cli import seed_table
     assert seed_table.main([str(out), str(out / "results.json"), "--labels", "a,b",
-                            "--out", str(tmp_path / "seeds")]) == 0
+                            "--paired", f"{first} minus cycle 0", "--out", str(tmp_path / "seeds")]) == 0
+    assert "minus cycle 0, paired over objects" in (tmp_path / "seeds" / "paired_seeds.md").read_text()
     md = (tmp_path / "seeds" / "table1_seeds.md").read_text()
     imprint = next(line for line in md.splitlines() if line.startswith("| Imprint | ours"))
     assert imprint.count("± 0.0") == 13 and "| Fit2Form + search (1, verify) | " in md
-    # the same command again takes up every row's finished outcomes: no row is designed or
-    # simulated for the table again, and the table and the pool's note come out the same
+    # the same commands again take up every row's finished outcomes: no row is designed or
+    # simulated for the table or the candidates again, and they come out the same
     kept = sorted(p.name.split("-")[0] for p in (out / ".steps").iterdir())
     assert kept and set(kept) == {"outcome"}  # the designs were dropped once results.json was written
-    assert cli.main(args) == 0
+    assert cli.main(args) == 0 and study.main(study_args) == 0
     captured = capsys.readouterr()
     assert "took up" in captured.err and "designing:" not in captured.err
     assert "neighbourhood of" not in captured.err and "fitness ranking:" not in captured.err
     again = json.loads((out / "results.json").read_text())
-    for part in ("table1", "neighbourhood", "fitness_ranking"):
-        assert again[part] == res[part], part
+    assert again["table1"] == res["table1"]
+    again = json.loads((out / "candidates.json").read_text())
+    for part in ("neighbourhood", "fitness_ranking"):
+        assert again[part] == cand[part], part
     assert "Design pool: where the verified picks" in captured.out
     # --checkpoint RUN/pretrained: the pretrained nets (ImpGN) on the same held-out objects
     assert cli.main(["--run-dir", str(run_dir), "--checkpoint", str(run_dir / "pretrained"), "--objects", "1",

@@ -15,6 +15,7 @@ import trimesh
 
 import f2f_jax
 from f2f_jax import config
+from f2f_jax import design_pool
 from f2f_jax import designer as design_module
 from f2f_jax.cli.design import main as design_main
 from f2f_jax.config import TRIAL_NAMES
@@ -334,7 +335,8 @@ def test_tolerance_picks_the_design_whose_outcome_survives_printing(models, sphe
         seen.append(np.asarray(tsdf_heights(lefts.reshape(-1, R, R, R))))
         return out
 
-    monkeypatch.setattr(design_module, "simulate_candidates", simulate)
+    monkeypatch.setattr(design_module, "simulate_candidates", simulate)  # design()'s call
+    monkeypatch.setattr(design_pool, "simulate_candidates", simulate)  # simulate_moved's
     exact = design_module.design(sphere_tsdf, params=models, candidates=2, verify=True, imprint=False)
     assert exact.candidate == 0 and exact.simulated.sum() == 11 and exact.moved is None
     assert exact.simulated_mean == 11 and exact.scores()["moved_passed"] is None
@@ -372,7 +374,7 @@ def test_tolerance_picks_the_design_whose_outcome_survives_printing(models, sphe
 def test_printed_copies_move_every_design_set_alike_for_one_seed(sphere_tsdf):
     """``printed_copies``: copy-major [copies x N], each copy moved (0.3 mm: 0.2 voxel), and the
     fields depend on the seed, copy, side and object index only, so two rows that share a design
-    of an object get identical copies of it (the pairing of ``evaluate.py --printed``)."""
+    of an object get identical copies of it (the pairing of ``research/printed_table.py``)."""
     wide, _ = wsg50_fingers(width=0.04, depth=0.04)
     left, right = imprint_fingers(sphere_tsdf)
     row_a = np.stack([left, wide]), np.stack([right, wide])
@@ -406,7 +408,8 @@ def test_simulate_moved_shares_fields_across_an_objects_candidates(models, spher
         seen.append((ls.copy(), rs.copy()))
         return np.zeros(feas.shape + (11,), np.uint8)
 
-    monkeypatch.setattr(design_module, "simulate_candidates", simulate)
+    monkeypatch.setattr(design_module, "simulate_candidates", simulate)  # design()'s call
+    monkeypatch.setattr(design_pool, "simulate_candidates", simulate)  # simulate_moved's
     objects = np.stack([sphere_tsdf, sphere_tsdf])
     out = design_module.simulate_moved(models, objects, lefts, rights, feasible, "mujoco", 0.2, 2,
                                        np.random.default_rng(0), shared=True)

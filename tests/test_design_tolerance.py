@@ -1,9 +1,9 @@
-"""benchmarks/design_tolerance.py: the table of picks re-simulated on fresh moved copies."""
+"""research/design_tolerance.py: the table of picks re-simulated on fresh moved copies."""
 
 import numpy as np
 import pytest
 
-import benchmarks.design_tolerance as bench
+import research.design_tolerance as bench
 from tests.test_sim_retest import _outcomes  # [N, J] trials passed -> [N, J, 11] outcomes
 
 

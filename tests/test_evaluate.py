@@ -188,7 +188,7 @@ def test_a_killed_table_resumes_with_the_rows_it_had_finished(objects, hulls, ti
     def store(**changed):
         return steps.StepStore(tmp_path, steps.common_digest(objects, tiny, seed=0), {**recipes, **changed})
 
-    real, calls = sim.evaluate, []
+    real, calls = sim.evaluate_with_info, []  # table1's call
 
     def killed_in_the_second_row(*args, **kw):
         calls.append(len(args[0]))
@@ -196,13 +196,13 @@ def test_a_killed_table_resumes_with_the_rows_it_had_finished(objects, hulls, ti
             raise KeyboardInterrupt
         return real(*args, **kw)
 
-    monkeypatch.setattr(sim, "evaluate", killed_in_the_second_row)
+    monkeypatch.setattr(sim, "evaluate_with_info", killed_in_the_second_row)
     kept = {k: steps.StoredDesigner(store(), k, d) for k, d in designers.items()}
     with pytest.raises(KeyboardInterrupt):
         E.table1(kept, objects, tiny, object_hulls=hulls, progress=False, store=store())
     assert len(list((tmp_path / steps.DIRECTORY).glob("design-*.npz"))) == 2  # both rows designed
     calls.clear()
-    monkeypatch.setattr(sim, "evaluate", lambda *a, **kw: (calls.append(len(a[0])), real(*a, **kw))[1])
+    monkeypatch.setattr(sim, "evaluate_with_info", lambda *a, **kw: (calls.append(len(a[0])), real(*a, **kw))[1])
     again = E.table1(kept, objects, tiny, object_hulls=hulls, progress=False, store=store())
     assert calls == [len(objects)]  # only the row the kill interrupted
     for k in designers:
@@ -221,8 +221,8 @@ def test_a_killed_table_resumes_with_the_rows_it_had_finished(objects, hulls, ti
     assert len(calls) == 1
     # a batched backend gets every missing row in one call (here plain MuJoCo stands in for it)
     calls.clear()
-    monkeypatch.setattr(sim, "evaluate", lambda *a, **kw: (calls.append(len(a[0])),
-                                                           real(*a, **{**kw, "backend": "mujoco"}))[1])
+    monkeypatch.setattr(sim, "evaluate_with_info", lambda *a, **kw: (calls.append(len(a[0])),
+                                                                     real(*a, **{**kw, "backend": "mujoco"}))[1])
     batched = E.table1(designers, objects, tiny, object_hulls=hulls, progress=False, backend="mjx",
                        store=store(WSG50="again", Imprint="again"))
     assert calls == [2 * len(objects)]
@@ -259,54 +259,73 @@ def test_cli_refuses_bad_arguments_before_any_work(tmp_path, capsys):
 
     assert cli.main(["--tables", "3"]) == 2
     assert cli.main(["--extra", "no-equals-sign"]) == 2
-    assert cli.main(["--fitness-ranking", "1"]) == 2  # one candidate ranks nothing
     assert cli.main(["--extra", f"GS={tmp_path / 'missing'}"]) == 2
     assert cli.main(["--run-dir", str(tmp_path / "missing")]) == 2
     assert cli.main(["--run-dir", str(tmp_path)]) == 2  # a directory without an object set
-    assert cli.main(["--neighbourhood", "0"]) == 2
     assert cli.main(["--fresh", "4"]) == 2  # new objects are added to a run's held-out ones
     assert cli.main(["--checkpoint", str(tmp_path)]) == 2  # whose held-out objects?
     assert cli.main(["--run-dir", str(tmp_path), "--checkpoint", str(tmp_path)]) == 2  # no checkpoints/
     (tmp_path / "objects").mkdir()
     (tmp_path / "objects" / "source.json").write_text('{"source": "builtin", "n": 8, "seed": 3}')
     assert cli.main(["--run-dir", str(tmp_path), "--fresh", "4", "--seed", "3"]) == 2
-    for flags in (["--printed", "0"], ["--printed", "-0.3"], ["--printed", "inf"],
-                  ["--printed", "0.3", "--printed-copies", "0"], ["--printed", "0.3", "--tables", "2"]):
-        assert cli.main(flags) == 2
     err = capsys.readouterr().err
-    assert "--printed MM needs a finite MM > 0" in err and "--printed-copies J needs J >= 1" in err
-    assert "add 1 to --tables" in err
     assert "--tables '3'" in err and "NAME=RUN_DIR" in err and "no object set" in err
     assert "would not be new" in err and "--checkpoint DIR needs --run-dir" in err
     assert "no checkpoints/ directory" in err
 
 
+def test_the_studies_beside_evaluate_refuse_bad_arguments_before_any_work(tmp_path, capsys):
+    """research/generator_candidates.py and research/printed_table.py take evaluate.py's flags
+    and their own; a bad one ends the call before any object is made."""
+    import importlib
+
+    candidates = importlib.import_module("research.generator_candidates")
+    printed = importlib.import_module("research.printed_table")
+    for main, flags in ((candidates.main, ["--fitness-ranking", "2"]),  # no --run-dir
+                        (candidates.main, ["--run-dir", str(tmp_path)]),  # nothing asked
+                        (candidates.main, ["--run-dir", str(tmp_path), "--fitness-ranking", "1"]),
+                        (candidates.main, ["--run-dir", str(tmp_path), "--neighbourhood", "0"]),
+                        (printed.main, ["--tolerance", "0"]), (printed.main, ["--tolerance", "inf"]),
+                        (printed.main, ["--tolerance", "-0.3"]), (printed.main, ["--copies", "0"]),
+                        (printed.main, ["--extra", "no-equals-sign"])):
+        with pytest.raises(SystemExit) as exc:
+            main(flags)
+        assert exc.value.code == 2, flags
+    err = capsys.readouterr().err
+    assert "--run-dir is needed" in err and "K >= 2 candidates to rank" in err
+    assert "--tolerance MM needs a finite MM > 0" in err and "--copies J needs J >= 1" in err
+    assert "NAME=RUN_DIR" in err
+
+
 def test_printed_table_scores_every_row_on_the_same_moved_fingers(tmp_path, monkeypatch):
-    """--printed: Table 1 again with both fingers of every row moved by a printer's error, two
-    copies per object; imprints moved by ~0.15 mm still hold what flat pads drop, and the same
-    command again simulates nothing (the moved outcomes are kept steps)."""
+    """research/printed_table.py: Table 1 again with both fingers of every row moved by a
+    printer's error, two copies per object; imprints moved by ~0.15 mm still hold what flat pads
+    drop, and the same command again simulates nothing (the moved outcomes are kept steps)."""
+    import importlib
     import json
 
     from f2f_jax import sim
-    from f2f_jax.cli import evaluate as cli
 
+    study = importlib.import_module("research.printed_table")
     monkeypatch.setenv("F2F_CACHE_DIR", str(tmp_path / "cache"))
     out = tmp_path / "eval"
-    argv = ["--config", "tiny", "--objects", "2", "--tables", "1", "--printed", "0.3",
-            "--printed-copies", "2", "--out", str(out), "--quiet"]
-    assert cli.main(argv) == 0
-    results = json.loads((out / "results.json").read_text())
+    argv = ["--config", "tiny", "--objects", "2", "--tolerance", "0.3", "--copies", "2",
+            "--out", str(out), "--quiet"]
+    assert study.main(argv) == 0
+    results = json.loads((out / "printed.json").read_text())
     printed = results["table1_printed"]
     assert printed["tolerance_mm"] == 0.3 and printed["copies"] == 2
-    assert set(printed["values"]) == set(results["table1"]["values"]) >= {"Flat pads", "Imprint"}
+    assert set(printed["values"]) >= {"Flat pads", "Imprint"} and results["objects"] == 2
     assert printed["values"]["Imprint"]["grasp"] > printed["values"]["Flat pads"]["grasp"]
     text = (out / "table1_printed.md").read_text()
     assert "as printed" in text and "2 objects x 2 moved copies" in text
     calls = []
-    real = sim.evaluate
-    monkeypatch.setattr(sim, "evaluate", lambda *a, **kw: (calls.append(len(a[0])), real(*a, **kw))[1])
-    assert cli.main(argv) == 0 and calls == []
-    again = json.loads((out / "results.json").read_text())["table1_printed"]
+    for name in ("evaluate", "evaluate_with_info"):  # the printed copies' call and table1's
+        real = getattr(sim, name)
+        monkeypatch.setattr(sim, name, lambda *a, real=real, **kw: (calls.append(len(a[0])),
+                                                                    real(*a, **kw))[1])
+    assert study.main(argv) == 0 and calls == []
+    again = json.loads((out / "printed.json").read_text())["table1_printed"]
     assert again["values"] == printed["values"]
 
 

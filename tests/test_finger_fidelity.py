@@ -1,11 +1,11 @@
-"""benchmarks/finger_fidelity.py: the height-map difference it reports beside the simulated trials."""
+"""research/finger_fidelity.py: the height-map difference it reports beside the simulated trials."""
 
 import importlib
 
 import numpy as np
 import pytest
 
-fidelity = importlib.import_module("benchmarks.finger_fidelity")
+fidelity = importlib.import_module("research.finger_fidelity")
 
 
 def test_height_gap_counts_voxels_of_height_where_either_finger_stands(sphere_tsdf):

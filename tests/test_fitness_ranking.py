@@ -1,4 +1,4 @@
-"""benchmarks/fitness_ranking.py: within-object AUC, the pairwise loss, the gap maps, and `fit` end to end."""
+"""research/fitness_ranking.py: within-object AUC, the pairwise loss, the gap maps, and `fit` end to end."""
 
 import importlib
 
@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-ranking = importlib.import_module("benchmarks.fitness_ranking")
+ranking = importlib.import_module("research.fitness_ranking")
 
 
 def test_within_object_auc_counts_only_objects_with_both_outcomes():

@@ -1,11 +1,11 @@
-"""benchmarks/gpu_pack.py: the parts join back into the archive, and the lines it prints stash
+"""tools/gpu_pack.py: the parts join back into the archive, and the lines it prints stash
 every part before the last one unpacks them."""
 
 import importlib
 
 import pytest
 
-pack = importlib.import_module("benchmarks.gpu_pack")
+pack = importlib.import_module("tools.gpu_pack")
 
 
 def test_parts_are_small_enough_and_join_back_into_the_archive(tmp_path):

@@ -2,8 +2,9 @@
 
 Every ``import`` in the library, at the top of a module or inside a function, is read with ``ast``
 and checked against ``LAYERS``: a part may import its own layer and the ones below it, never one
-above.  The library never imports the scripts (``experiments/``, ``benchmarks/``) or the tests, and
-the bottom layers stay free of the heavy frameworks that the layers above them bring in.
+above.  The library never imports the scripts (``experiments/``, ``benchmarks/``, ``research/``,
+``tools/``) or the tests, and the bottom layers stay free of the heavy frameworks that the layers
+above them bring in.
 """
 
 from __future__ import annotations
@@ -17,13 +18,13 @@ PACKAGE = Path(__file__).resolve().parents[1] / "f2f_jax"
 
 # Bottom first.  A name is a module or sub-package directly under f2f_jax/.
 LAYERS = [
-    {"config", "errors", "fileio"},
+    {"config", "errors", "fileio", "run_plan"},
     {"geometry"},
     {"data", "render"},
     {"sim"},
     {"dataset", "nets"},
     {"train"},
-    {"designer"},
+    {"designer", "design_pool"},
     {"tables", "bench"},
     {"cli", "__init__"},
 ]
@@ -38,7 +39,7 @@ FORBIDDEN = {
 }
 # Modules that run MJX (JAX on purpose): the accelerator backend and its pieces.
 JAX_IN_SIM = {"sim/mjx_batch.py", "sim/mjx_collision.py"}
-SCRIPTS = {"experiments", "benchmarks", "tests"}
+SCRIPTS = {"experiments", "benchmarks", "research", "tools", "tests"}
 
 
 def _part(path: Path) -> str:

@@ -21,6 +21,7 @@ from f2f_jax.nets import (
     summarize,
 )
 from f2f_jax.nets import __main__ as nets_cli
+from f2f_jax.nets.fitness import STEM_KERNEL
 from f2f_jax.nets.shape import VolumeConv, VolumeConvTranspose, _fold_depth_conv, conv3d
 from f2f_jax.train.losses import vae_loss
 
@@ -125,7 +126,7 @@ def expected_counts(cfg) -> dict[str, int]:
     gen += n * 2 * lat + 2 * lat
     fit, c, dims = 0, 1, np.array([3 * R, R, R])
     for stage, (width, blocks) in enumerate(zip(cfg.fitness_channels, cfg.fitness_blocks)):
-        fit += _conv_bn(c, width, cfg.fitness_stem_kernel if stage == 0 else 3)
+        fit += _conv_bn(c, width, STEM_KERNEL if stage == 0 else 3)
         fit += blocks * 2 * _conv_bn(width, width)
         c, dims = width, (dims - 1) // 2 + 1  # stride 2, "same" padding
     fit += _conv_bn(c, c)

@@ -1,4 +1,4 @@
-"""benchmarks/protocol_fidelity.py end to end on the smallest set: our protocol and the PyBullet
+"""research/protocol_fidelity.py end to end on the smallest set: our protocol and the PyBullet
 original on the same triples, the report's figures consistent with the outcomes."""
 
 import importlib
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("pybullet")
-fidelity = importlib.import_module("benchmarks.protocol_fidelity")
+fidelity = importlib.import_module("research.protocol_fidelity")
 
 
 @pytest.mark.slow
@@ -62,7 +62,7 @@ def test_every_ablation_names_fields_that_exist_on_its_side():
     proto = {f.name for f in dataclasses.fields(peer.OriginalProtocol)}
     sim_fields = {f.name for f in dataclasses.fields(SimConfig)}
     for side, label, changes in fidelity.ABLATIONS:
-        allowed = sim_fields if side == "ours" else proto | {fidelity.SIM_PREFIX + f for f in sim_fields}
+        allowed = sim_fields if side == "ours" else proto | {peer.SIM_PREFIX + f for f in sim_fields}
         assert side in ("ours", "pybullet") and set(changes) <= allowed, (side, label, changes)
     friction = [c for s, label, c in fidelity.ABLATIONS if s == "pybullet" and "friction 0.4" in label]
     assert friction == [{"sim.finger_friction": 0.4}]
@@ -79,7 +79,7 @@ def test_a_peer_ablation_changes_the_protocol_or_the_shared_config_by_its_prefix
         return np.zeros((0, 11), np.uint8), {"steps": 0}
 
     monkeypatch.setattr(peer, "evaluate_original", capture)
-    fidelity._peer_chunk(([], [], [], config.default(), {"sim.finger_friction": 0.4, "substeps": 4}))
+    peer.peer_chunk(([], [], [], config.default(), {"sim.finger_friction": 0.4, "substeps": 4}))
     assert seen["cfg"].sim.finger_friction == 0.4  # the object's lateral friction in Bullet
     assert seen["protocol"].substeps == 4
     assert seen["protocol"].finger_lateral_friction == peer.PROTOCOL.finger_lateral_friction

@@ -1,6 +1,6 @@
 """The agreement statistics and perturbed fingers (f2f_jax.bench.agreement), the argument checks of
-benchmarks/sim_agreement.py and of the other simulator benchmarks (sim_throughput, mjx_contacts,
-gpu_check)."""
+benchmarks/sim_agreement.py (MJX's agreement runs included: ``--triples dataset --judged-runs``) and of
+the other simulator benchmarks (sim_throughput, its batched and peer rows, mjx_contacts, gpu_check)."""
 
 import importlib
 import json
@@ -89,6 +89,9 @@ def test_inconsistent_inputs_raise():
     ["--backends", "warp", "bullet"],
     ["--hull-vertices", "3"],
     ["--object-method", "vhacd"],
+    ["--judged-runs", "0"],
+    ["--triples", "dataset", "--objects", "/tmp"],
+    ["--triples", "dataset", "--kinds", "perturbed"],
 ])
 def test_bad_arguments_exit_2(argv, capsys):
     with pytest.raises(SystemExit) as exc:
@@ -115,6 +118,22 @@ def test_object_method_changes_only_the_judged_side(tmp_path):
     assert got["presets"] == ["fast/tiles", "reference"] and got["object_method"] == "tiles"
     assert got["object_meshing_s"]["max"] > 0  # tiles are made here and timed; coacd would be null
     assert got["n"] == 2 and len(got["rates"]["all"]) == 2  # both sides simulated
+
+
+def test_the_dataset_triples_run_twice_on_the_judged_side_agree_with_themselves(tmp_path, capsys):
+    """``--triples dataset --judged-runs 2``: the pretraining dataset's pairs of builtin objects
+    (what MJX's agreement was measured on), the judged side run twice and both runs reported."""
+    out = tmp_path / "agree.json"
+    assert agreement_script.main(["--n", "2", "--config", "tiny", "--presets", "fast", "fast",
+                                  "--triples", "dataset", "--kinds", "imprint", "wsg50",
+                                  "--judged-runs", "2", "--threads", "1", "--json", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert got["triples"] == "dataset" and got["kinds"] == {"imprint": 1, "wsg50": 1}
+    assert len(got["judged_runs"]) == 2 and got["agreement_per_trial"] == 1.0
+    assert got["per_trial_both_held"] == [1.0] * 11  # the imprint pair holds in both
+    printed = capsys.readouterr().out
+    assert "judged run 2" in printed and "differs from run 1" not in printed
+    assert "(triples both sides held)" in printed
 
 
 def test_perturbed_finger_is_feasible_and_new(cfg):
@@ -153,6 +172,50 @@ def test_sim_throughput_refuses_unknown_backends_before_any_work(argv, capsys):
     assert exc.value.code == 2 and "--backends" in capsys.readouterr().err
 
 
+def test_sim_throughput_times_mjx_grasp_program_alone_apart_from_its_compile():
+    """``--grasp-only``: per batch size the grasp program's first call (compile) and a second,
+    timed one; the figures follow from the simulator's step counts (a stand-in simulator here:
+    MJX itself compiles for minutes on a CPU)."""
+    from types import SimpleNamespace
+
+    throughput = importlib.import_module("benchmarks.sim_throughput")
+
+    class Stand_in:
+        n_settle, n_close, lift_ctrl, n_hold, compile_seconds = 2, 3, np.zeros(4), 1, 0.0
+        seen = set()
+
+        def batch(self, models):
+            return SimpleNamespace(fields=len(models), convex=None, planes=None)
+
+        def _call(self, name, size, fields, convex, planes, yaw):
+            assert name == "grasp" and fields == size == len(yaw)
+            if size not in self.seen:
+                self.seen.add(size)
+                self.compile_seconds += 5.0
+            return (np.arange(size) % 2 == 0,)
+
+    stand_in = Stand_in()
+    out = {}
+    throughput.grasp_rows(SimpleNamespace(simulator_for=lambda model, cfg: stand_in), ["m0", "m1", "m2"],
+                          None, [2, 4], out, "mjx")
+    rows = out["mjx_grasp_rows"]
+    assert [r["batch"] for r in rows] == [2, 4] and [r["compile_s"] for r in rows] == [5.0, 5.0]
+    assert all(r["held"] == 0.5 and r["env_steps_per_s"] == pytest.approx(r["grasps_per_s"] * 10)
+               for r in rows)
+
+
+def test_sim_throughput_times_the_pybullet_peer_alone_on_four_convex_shapes(capsys):
+    pytest.importorskip("pybullet")
+    throughput = importlib.import_module("benchmarks.sim_throughput")
+    assert throughput.main(["--peer-shapes", "convex"]) == 0
+    printed = capsys.readouterr().out
+    for shape in ("sphere", "box", "cylinder", "cone"):
+        assert f"\n{shape}" in printed
+    assert "4 evaluations" in printed and "steps/evaluation" in printed
+    with pytest.raises(SystemExit):
+        throughput.main(["--peer-shapes", "convex", "--peer-repeat", "0"])
+
+
 def test_mjx_contacts_refuses_pieces_below_a_tetrahedron(capsys):
     contacts = importlib.import_module("benchmarks.mjx_contacts")
     with pytest.raises(SystemExit) as exc:
@@ -169,7 +232,7 @@ def test_sim_throughput_times_no_finger_meshing_in_any_row(monkeypatch, tmp_path
     throughput = importlib.import_module("benchmarks.sim_throughput")
     monkeypatch.setattr(finger_tiling, "_memo", type(finger_tiling._memo)())  # none remembered
     meshed = {"n": 0, "inside_rows": 0}
-    real_hulls, real_evaluate = finger_tiling.finger_hulls, sim.evaluate
+    real_hulls, real_evaluate = finger_tiling.finger_hulls, sim.evaluate_with_info
     rows = {"open": False}
 
     def counting_hulls(*args, **kwargs):
@@ -185,7 +248,7 @@ def test_sim_throughput_times_no_finger_meshing_in_any_row(monkeypatch, tmp_path
             rows["open"] = False
 
     monkeypatch.setattr(finger_tiling, "finger_hulls", counting_hulls)
-    monkeypatch.setattr(throughput.sim, "evaluate", timed_row)
+    monkeypatch.setattr(throughput.sim, "evaluate_with_info", timed_row)
     assert throughput.main(["--config", "tiny", "--n", "1", "--per-core-n", "0", "--no-pybullet",
                             "--meshing-n", "0", "--threads", "1", "--json", str(tmp_path / "t.json")]) == 0
     assert meshed["n"] == 2 and meshed["inside_rows"] == 0  # the pair meshed once, before timing

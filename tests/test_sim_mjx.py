@@ -63,7 +63,7 @@ def test_evaluate_mjx_builds_each_feasible_candidate_and_maps_outcomes_back(monk
     order, their outcomes written back to their rows (the batch itself is mocked: compiling it
     costs minutes on a CPU and is tested above)."""
     from f2f_jax.geometry import imprint_fingers
-    from f2f_jax.sim import evaluate
+    from f2f_jax.sim import evaluate_with_info
 
     seen = []
 
@@ -76,8 +76,8 @@ def test_evaluate_mjx_builds_each_feasible_candidate_and_maps_outcomes_back(monk
     monkeypatch.setattr(mjx_batch, "evaluate_models", fake_batch)
     left, right = imprint_fingers(sphere_tsdf, tiny_cfg.geometry)
     empty = np.ones_like(left)  # infeasible: never built
-    out, info = evaluate([sphere_tsdf] * 3, [left, empty, left], [right] * 3, cfg=tiny_cfg,
-                         backend="mjx", return_info=True)
+    out, info = evaluate_with_info([sphere_tsdf] * 3, [left, empty, left], [right] * 3, cfg=tiny_cfg,
+                                   backend="mjx")
     assert len(seen) == 2 and all(m.ngeom == seen[0].ngeom for m in seen)
     assert out[:, 0].tolist() == [1, 0, 2] and info.infeasible.tolist() == [False, True, False]
     assert info.steps.tolist() == [7, 0, 7]

@@ -20,7 +20,14 @@ from f2f_jax.geometry import imprint_fingers, is_feasible, tsdf_to_mesh, wsg50_f
 from f2f_jax.geometry.finger_tiling import finger_hulls
 from f2f_jax.geometry.hulls import Hulls, pad_hulls
 from f2f_jax.geometry.pieces import object_pieces
-from f2f_jax.sim import GraspRunner, build_model, evaluate, run_trials, scene_ids
+from f2f_jax.sim import (
+    GraspRunner,
+    build_model,
+    evaluate,
+    evaluate_with_info,
+    run_trials,
+    scene_ids,
+)
 
 
 @pytest.fixture(scope="module")
@@ -68,8 +75,7 @@ def test_sphere_in_its_imprint_fingers_is_lifted_and_survives_the_downward_push(
         sphere_tsdf, preset):
     tiny, sphere_hulls = preset
     left, right = imprint_fingers(sphere_tsdf, tiny)
-    out, info = evaluate([sphere_tsdf], [left], [right], cfg=tiny, object_hulls=sphere_hulls,
-                         return_info=True)
+    out, info = evaluate_with_info([sphere_tsdf], [left], [right], cfg=tiny, object_hulls=sphere_hulls)
     assert out.shape == (1, len(TRIAL_NAMES)) and out.dtype == np.uint8
     assert out[0, 0] == 1, f"imprint fingers dropped the sphere: {out[0]}"
     assert out[0, 1] == 1, f"the downward push broke the imprint cage: {out[0]}"
@@ -143,8 +149,7 @@ def test_feasible_fingers_that_miss_the_object_score_zero(preset):
     corners = np.stack(np.meshgrid([-0.0285, 0.0285], [-0.0285, 0.0285], [0.0015, 0.015],
                                    indexing="ij"), -1).reshape(-1, 3)
     hulls = pad_hulls([corners], 8, 32)
-    out, info = evaluate([low_box], [band], [band], cfg=tiny, object_hulls=hulls, threads=1,
-                         return_info=True)
+    out, info = evaluate_with_info([low_box], [band], [band], cfg=tiny, object_hulls=hulls, threads=1)
     assert not out.any()
     assert not info.infeasible[0] and not info.failed[0]
     # only the grasp trial ran, and it stopped once the lift was done
@@ -158,8 +163,8 @@ def test_infeasible_fingers_score_zero_without_simulating(sphere_tsdf, sphere_hu
     empty = np.ones_like(left)  # no solid voxel
     floating = box_tsdf([-0.01, -0.01, 0.02], [0.01, 0.01, 0.04], tiny)  # not on the mount
     assert not is_feasible(empty, tiny) and not is_feasible(floating, tiny)
-    out, info = evaluate([sphere_tsdf] * 2, [empty, left], [right, floating], cfg=tiny,
-                         object_hulls=sphere_hulls, return_info=True)
+    out, info = evaluate_with_info([sphere_tsdf] * 2, [empty, left], [right, floating], cfg=tiny,
+                                   object_hulls=sphere_hulls)
     assert not out.any()
     assert info.infeasible.all() and (info.steps == 0).all()
     assert info.results == [None, None]
@@ -170,7 +175,7 @@ def test_evaluation_is_deterministic_across_runs_and_threads(sphere_tsdf, sphere
     flat = wsg50_fingers(tiny)
     args = ([sphere_tsdf] * 3, [imprint[0], flat[0], imprint[0]],
             [imprint[1], flat[1], imprint[1]])
-    runs = [evaluate(*args, cfg=tiny, object_hulls=sphere_hulls, threads=t, return_info=True)
+    runs = [evaluate_with_info(*args, cfg=tiny, object_hulls=sphere_hulls, threads=t)
             for t in (2, 1)]
     (out_a, info_a), (out_b, info_b) = runs
     np.testing.assert_array_equal(out_a, out_b)
@@ -203,8 +208,8 @@ def test_a_candidate_that_cannot_be_built_fails_alone(sphere_tsdf, sphere_hulls,
     counts[0] = 4
     bad = Hulls(flat, counts)
     left, right = wsg50_fingers(tiny)
-    out, info = evaluate([sphere_tsdf] * 2, [left] * 2, [right] * 2, cfg=tiny,
-                         object_hulls=[bad, sphere_hulls], return_info=True)
+    out, info = evaluate_with_info([sphere_tsdf] * 2, [left] * 2, [right] * 2, cfg=tiny,
+                                   object_hulls=[bad, sphere_hulls])
     assert info.failed.tolist() == [True, False]
     assert "spans no volume" in info.errors[0]
     assert not out[0].any() and info.steps[0] == 0
@@ -266,8 +271,8 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
     monkeypatch.setattr(hull_pool, "object_hulls", fake_object_hulls)
     left, right = wsg50_fingers(tiny)
     # one thread: decomposition stays in this process (with more, worker processes run coacd)
-    out, info = evaluate([sphere_tsdf, other, sphere_tsdf], [left] * 3, [right] * 3, cfg=tiny,
-                         cache_dir=tmp_path, return_info=True, progress=False, threads=1)
+    out, info = evaluate_with_info([sphere_tsdf, other, sphere_tsdf], [left] * 3, [right] * 3, cfg=tiny,
+                                   cache_dir=tmp_path, progress=False, threads=1)
     assert calls == [tmp_path, tmp_path]
     assert info.failed.tolist() == [False, True, False]
     assert "coacd found nothing" in info.errors[1]
@@ -276,46 +281,16 @@ def test_object_hulls_are_made_once_per_distinct_object(monkeypatch, sphere_tsdf
 
 def test_fingers_that_close_on_nothing_stop_against_each_other(sphere_hulls, flat_tips, tiny):
     """The object 5 cm beside the jaws' path: flat tips closing from fully open meet nothing
-    but each other.  With SimConfig.finger_collisions (the default, the original's
-    self-collision) they stop there, a tip's depth from the centre plane; without, they pass
-    through each other to the jaws' joint limit."""
-    openings = {}
-    for collide in (False, True):
-        cfg = tiny.replace(sim=dataclasses.replace(tiny.sim, finger_collisions=collide))
-        model = build_model(sphere_hulls, *flat_tips, cfg, object_xy=(0.0, 0.05))
-        runner = GraspRunner(model, cfg)
-        runner.place(0.0)  # fully open; no approach: it would set the tips into each other
-        runner.data.ctrl[runner.ids.grip_act] = runner.ids.jaw_range[:, 0]
-        runner.advance(cfg.sim.steps(1.6))  # 0.1 m/s: 11 cm open to the -3 cm limit and rest
-        openings[collide] = runner.data.qpos[runner.ids.jaw_qpos].copy()
-    assert (openings[False] < 0.0).all(), openings  # mount planes past the centre plane
-    assert (openings[True] > 0.01).all(), openings  # 3 cm tips: they meet ~3 cm from it
-
-
-def test_a_push_through_the_world_origin_also_turns_the_object(sphere_tsdf, sphere_hulls, tiny):
-    """SimConfig.push_point "origin" (the original's call) applies the push's moment about the
-    centre of mass too: a sideways push then tilts the held sphere, one at its centre does not."""
-    left, right = imprint_fingers(sphere_tsdf, tiny)
-    spec = mujoco.mjtState.mjSTATE_INTEGRATION
-    turned = {}
-    for point in ("com", "origin"):
-        cfg = tiny.replace(sim=dataclasses.replace(tiny.sim, push_point=point))
-        model = build_model(sphere_hulls, finger_hulls(left, tiny), finger_hulls(right, tiny), cfg)
-        runner = GraspRunner(model, cfg)
-        assert runner.grasp(0.0)[0]
-        state = np.empty(mujoco.mj_stateSize(model, spec))
-        mujoco.mj_getState(model, runner.data, state, spec)
-        body = runner.ids.object_body
-        before = runner.data.xquat[body].copy()
-        direction = (0.0, 0.70710678, -0.70710678)  # S2: the torque about x is 1.5 N x 0.7 x z
-        runner.push(state, runner.z_start, direction)
-        turned[point] = 2 * np.degrees(np.arccos(min(1.0, abs(float(np.dot(
-            runner.data.xquat[body], before))))))
-    assert turned["origin"] > turned["com"] + 1.0, turned
-    cfg = tiny.replace(sim=dataclasses.replace(tiny.sim, push_point="corner"))
-    with pytest.raises(ValueError, match="push_point"):
-        GraspRunner(build_model(sphere_hulls, finger_hulls(left, tiny), finger_hulls(right, tiny),
-                                cfg), cfg).push(state, 0.0, direction)
+    but each other.  The two jaws' fingers collide (as the original's self-collision), so they
+    stop there, a tip's depth from the centre plane, instead of passing through each other to
+    the jaws' joint limit."""
+    model = build_model(sphere_hulls, *flat_tips, tiny, object_xy=(0.0, 0.05))
+    runner = GraspRunner(model, tiny)
+    runner.place(0.0)  # fully open; no approach: it would set the tips into each other
+    runner.data.ctrl[runner.ids.grip_act] = runner.ids.jaw_range[:, 0]
+    runner.advance(tiny.sim.steps(1.6))  # 0.1 m/s: 11 cm open to the -3 cm limit and rest
+    openings = runner.data.qpos[runner.ids.jaw_qpos].copy()
+    assert (openings > 0.01).all(), openings  # 3 cm tips: they meet ~3 cm from it
 
 
 def test_a_batch_makes_each_distinct_fingers_pieces_once(sphere_tsdf, sphere_hulls, tiny, monkeypatch):

@@ -54,7 +54,7 @@ def triples(tiny_cfg):
 @pytest.fixture(scope="module")
 def threaded(triples, tiny_cfg, tmp_path_factory):
     cache = tmp_path_factory.mktemp("hulls")
-    out, info = sim.evaluate(*triples, cfg=tiny_cfg, threads=2, cache_dir=cache, return_info=True)
+    out, info = sim.evaluate_with_info(*triples, cfg=tiny_cfg, threads=2, cache_dir=cache)
     # the imprints cage the cylinder and the ball; the box and the cone are held or not by how
     # they slide (at mu 0.2 two flat faces give 0.4 N of friction for 0.49 N of weight)
     assert out[2, 0] == 1 and out[4, 0] == 1, "imprint fingers should hold the cylinder and ball"
@@ -89,8 +89,8 @@ def test_missing_extra_names_the_install_command(triples, tiny_cfg, monkeypatch)
 def test_ray_gives_the_threaded_outcomes(ray_cluster, triples, threaded, tiny_cfg, tmp_path):
     want, want_info = threaded
     # uneven tasks (4 + 4 + 1 candidates), object pieces made by Ray tasks into a fresh cache
-    out, info = sim.evaluate(*triples, cfg=tiny_cfg, executor="ray", task_size=4,
-                             cache_dir=tmp_path, return_info=True)
+    out, info = sim.evaluate_with_info(*triples, cfg=tiny_cfg, executor="ray", task_size=4,
+                                       cache_dir=tmp_path)
     np.testing.assert_array_equal(out, want)
     np.testing.assert_array_equal(info.steps, want_info.steps)
     assert info.infeasible[-1] and not info.failed.any()
@@ -121,8 +121,8 @@ def test_killed_worker_is_retried_and_outcomes_complete(ray_cluster, triples, th
     result = {}
 
     def run():
-        result["out"] = sim.evaluate(*triples, cfg=tiny_cfg, executor="ray", task_size=1,
-                                     cache_dir=tmp_path, return_info=True)
+        result["out"] = sim.evaluate_with_info(*triples, cfg=tiny_cfg, executor="ray", task_size=1,
+                                               cache_dir=tmp_path)
 
     thread = threading.Thread(target=run)
     thread.start()
@@ -156,8 +156,8 @@ def test_candidate_that_crashes_workers_fails_alone(ray_cluster, triples, thread
     objs, lefts, rights = (t[:4] for t in triples)
     hulls = [object_pieces(o, tiny_cfg, cache_dir=False) for o in objs]
     hulls[1] = _KillsItsWorker()
-    out, info = sim.evaluate(objs, lefts, rights, cfg=tiny_cfg, executor="ray", task_size=4,
-                             object_hulls=hulls, return_info=True)
+    out, info = sim.evaluate_with_info(objs, lefts, rights, cfg=tiny_cfg, executor="ray", task_size=4,
+                                       object_hulls=hulls)
     assert info.failed.tolist() == [False, True, False, False]
     assert "ray task failed" in info.errors[1]
     np.testing.assert_array_equal(out[[0, 2, 3]], threaded[0][[0, 2, 3]])

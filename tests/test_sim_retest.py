@@ -1,10 +1,10 @@
-"""The test-retest figures of benchmarks/sim_retest.py."""
+"""The test-retest figures of research/sim_retest.py."""
 
 import importlib
 
 import numpy as np
 
-retest = importlib.import_module("benchmarks.sim_retest")
+retest = importlib.import_module("research.sim_retest")
 
 
 def _outcomes(trials_passed: np.ndarray) -> np.ndarray:

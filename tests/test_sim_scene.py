@@ -1,8 +1,6 @@
 """The grasp scene: the gripper MJCF, piece placement in the config.py frames, collision filtering,
 the fixed layout and the jaw openings at t = 0.  No trials run here (see test_sim_physics.py)."""
 
-import dataclasses
-
 import mujoco
 import numpy as np
 import pytest
@@ -119,13 +117,11 @@ def test_finger_pieces_are_placed_by_finger_pose(sphere_tsdf, sphere_hulls, cfg)
             assert dist.min(1).max() < 1e-6 and dist.min(0).max() < 1e-6, (side, k)
 
 
-@pytest.mark.parametrize("finger_collisions", [True, False])
 def test_collision_pairs_are_finger_object_object_floor_and_left_right_fingers(
-        sphere_hulls, wsg_hulls, cfg, finger_collisions):
-    """Fingers meet the object and (SimConfig.finger_collisions, the default) the other jaw's
-    fingers; the object meets the floor; nothing else collides, fingers never the floor."""
-    sim = dataclasses.replace(cfg.sim, finger_collisions=finger_collisions)
-    model = build_model(sphere_hulls, *wsg_hulls, cfg.replace(sim=sim))
+        sphere_hulls, wsg_hulls, cfg):
+    """Fingers meet the object and the other jaw's fingers; the object meets the floor; nothing
+    else collides, fingers never the floor."""
+    model = build_model(sphere_hulls, *wsg_hulls, cfg)
     ids = scene_ids(model)
     left, right = set(ids.finger_geoms[0]), set(ids.finger_geoms[1])
     fingers, objects = left | right, set(ids.object_geoms)
@@ -138,7 +134,7 @@ def test_collision_pairs_are_finger_object_object_floor_and_left_right_fingers(
             pair = {a, b}
             expected = ((len(pair & fingers) == 1 and len(pair & objects) == 1)
                         or (ids.floor_geom in pair and len(pair & objects) == 1)
-                        or (finger_collisions and len(pair & left) == 1 and len(pair & right) == 1))
+                        or (len(pair & left) == 1 and len(pair & right) == 1))
             assert collide == expected, (model.geom(a).name, model.geom(b).name)
 
 

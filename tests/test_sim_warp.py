@@ -121,7 +121,7 @@ def test_warp_trials_agree_with_mujoco_on_the_clear_cases(wb, sphere_models, tin
 
 
 def test_evaluate_warp_maps_outcomes_to_feasible_candidates(wb, monkeypatch, sphere_tsdf, tiny_cfg):
-    from f2f_jax.sim import evaluate
+    from f2f_jax.sim import evaluate, evaluate_with_info
 
     seen = []
 
@@ -133,8 +133,8 @@ def test_evaluate_warp_maps_outcomes_to_feasible_candidates(wb, monkeypatch, sph
 
     monkeypatch.setattr(wb, "evaluate_models", fake)
     left, right = imprint_fingers(sphere_tsdf, tiny_cfg.geometry)
-    out, info = evaluate([sphere_tsdf] * 3, [np.ones_like(left), left, left], [right] * 3,
-                         cfg=tiny_cfg, backend="warp", return_info=True)
+    out, info = evaluate_with_info([sphere_tsdf] * 3, [np.ones_like(left), left, left], [right] * 3,
+                                   cfg=tiny_cfg, backend="warp")
     assert len(seen) == 2 and out[:, 0].tolist() == [0, 1, 2]
     assert info.steps.tolist() == [0, 5, 5]
     with pytest.raises(NotImplementedError, match="object_xy"):

@@ -110,37 +110,3 @@ def test_steps_run_data_parallel_on_two_devices():
     assert out.returncode == 0, out.stderr[-3000:]
     assert "x 2" in out.stdout  # two devices seen
     assert out.stdout.count("samples/s") == 4
-
-
-def test_imprint_anchor_keeps_the_generator_near_the_imprint_latents(cfg, volumes, trained_fn):
-    """Against the same fitness net, the anchored generator ends closer to the imprint fingers'
-    latents than the plain one, and reports both parts of its loss."""
-    from f2f_jax.nets import FingerGenerator
-
-    objs, lefts, rights = volumes
-    fit = trained_fn[0].variables
-    gn = new_state(init_generator(cfg), S.generator_optimizer(cfg))
-    gn, _ = _run(S.gn_imprint_step(cfg), gn, (objs, lefts, rights), 10)
-    anchored_cfg = cfg.replace(train=dataclasses.replace(cfg.train, imprint_anchor=100.0))
-    model = FingerGenerator(cfg.net)
-
-    def distance(state):  # as the steps see it: batch statistics in the embedding net
-        v = state.variables
-        (zl, zr), _ = model.apply(v, objs, train=True, method=FingerGenerator.latents,
-                                  mutable=["batch_stats"])
-        tl = model.apply(v, lefts, method=lambda m, x: m.encoder(x, train=False)[0])
-        tr = model.apply(v, rights, method=lambda m, x: m.encoder(x, train=False)[0])
-        return float(jnp.mean(jnp.square(zl - tl)) + jnp.mean(jnp.square(zr - tr)))
-
-    start = distance(gn)
-    plain, _ = _run(S.gn_fitness_step(cfg), jax.tree.map(jnp.copy, gn), (fit, objs), 15)
-    anchored = jax.tree.map(jnp.copy, gn)
-    step = S.gn_fitness_step(anchored_cfg)
-    for _ in range(15):
-        anchored, m = step(anchored, fit, objs, lefts, rights)
-    assert {"loss", "fitness", "fitness_loss", "anchor"} <= set(m)
-    np.testing.assert_allclose(float(m["loss"]), float(m["fitness_loss"]) + 100.0 * float(m["anchor"]),
-                               rtol=1e-5)
-    assert distance(anchored) < min(start, distance(plain)), (start, distance(anchored), distance(plain))
-    with pytest.raises(TypeError, match="imprint"):
-        step(anchored, fit, objs)  # the anchored step needs the imprint fingers

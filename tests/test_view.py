@@ -1,6 +1,6 @@
 import matplotlib.image as mpimg
 
-from f2f_jax.sim import view
+from f2f_jax.cli import view
 
 
 def test_viewer_draws_the_phases_of_a_failed_grasp(tmp_path):

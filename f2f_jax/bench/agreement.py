@@ -5,8 +5,8 @@ WSG50 and cut pairs) plus designed-looking fingers (an imprint plus a smooth ran
 ``dataset.perturbed_finger``): ``mixed_triples`` over any object set (``load_objects``: builtin objects or a
 mesh directory), ``builtin_triples`` over builtin objects only.  ``agreement_stats`` and
 ``agreement_report`` compare two [N, 11] outcome arrays; ``rates`` and ``vector_text`` summarise
-and print them.  Used by ``benchmarks/sim_agreement.py``, ``mjx_agreement.py``, ``sim_retest.py``,
-``protocol_fidelity.py``, ``sim_throughput.py`` and ``mjx_contacts.py``.
+and print them.  Used by ``benchmarks/sim_agreement.py``, ``sim_throughput.py`` and ``mjx_contacts.py``, and by
+``research/sim_retest.py`` and ``research/protocol_fidelity.py``.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ What the original did, and what we keep:
   whose object never comes to rest in 10,000 steps.  These are the slow failures of the protocol.
 
 Where we differ, on purpose (each departure but the finger placement is a switch of
-``OriginalProtocol``, default the peer's choice, so ``benchmarks/protocol_fidelity.py --ablations``
+``OriginalProtocol``, default the peer's choice, so ``research/protocol_fidelity.py --ablations``
 can measure what the original's choice changes):
 
 * The fingers are placed with our frames (``f2f_jax.geometry.finger_pose``) at true relative scale
@@ -53,8 +53,9 @@ Three more switches keep the original's values by default, for ablations: ``subs
 imprint trials turn from failures into successes), ``solver_iterations`` and
 ``finger_rolling_friction`` (the fingers' rolling and spinning friction, 1 in the original's URDF).
 
-``pybullet_runs`` records, renders and times its runs; ``python benchmarks/pybullet_original.py``
-prints evaluations per second on imprint triples.  Needs the ``pybullet`` extra.
+``pybullet_runs`` records, renders and times its runs; ``python benchmarks/sim_throughput.py
+--peer-shapes convex`` prints evaluations per second on imprint triples.  Needs the ``pybullet``
+extra.
 """
 
 from __future__ import annotations
@@ -128,7 +129,7 @@ class OriginalProtocol:
     push_steps: int = 20  # steps_to_apply_force
     push_hold_steps: int = 200
     # --- the peer's departures from the original, as switches (defaults: the peer's choice; the
-    # original's value in each comment).  benchmarks/protocol_fidelity.py --ablations flips them.
+    # original's value in each comment).  research/protocol_fidelity.py --ablations flips them.
     self_collision: bool = False  # True: the two fingers collide with each other (original)
     push_point: str = "com"  # "origin": the force applied at the world origin (original)
     centre_of_mass: str = "centroid"  # "base": at the mesh's bottom centre (original)

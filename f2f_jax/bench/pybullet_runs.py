@@ -1,11 +1,15 @@
 """Runs of the PyBullet peer (``pybullet_peer``): a run that records the poses our viewer
 draws, one triple simulated or rendered, many triples timed, and a convex stand-in for object
-pieces.  ``render_original`` keeps a triple's poses for ``f2f_jax.sim.view.draw_strips``: the
-same panels as our own viewer, so one triple can be seen as both simulators ran it."""
+pieces; ``run_peer``: many triples in worker processes, one client each.  ``render_original``
+keeps a triple's poses for ``f2f_jax.sim.view.draw_strips``: the same panels as our own viewer,
+so one triple can be seen as both simulators ran it."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 
 import numpy as np
 from scipy.spatial import ConvexHull
@@ -166,3 +170,37 @@ def convex_object_hulls(obj_tsdf, cfg: Config | None = None) -> Hulls:
     g = (cfg or default()).geometry
     mesh = tsdf_to_mesh(obj_tsdf, g)
     return pad_hulls([np.asarray(mesh.vertices)], g.object_hulls, g.hull_vertices)
+
+
+# A change to the peer whose key has this prefix changes the SimConfig both protocols read (the
+# object's friction, its mass); any other key is an ``OriginalProtocol`` field.  Some names exist
+# in both (push_point, grip_force, timestep), so the prefix, not a lookup, decides.
+SIM_PREFIX = "sim."
+
+
+def peer_chunk(args):
+    """Worker process: one PyBullet client over a chunk of (objects, lefts, rights, cfg, changes)."""
+    objects, lefts, rights, cfg, changes = args
+    protocol = dataclasses.replace(PROTOCOL, **{k: v for k, v in changes.items()
+                                                if not k.startswith(SIM_PREFIX)})
+    sim_changes = {k[len(SIM_PREFIX):]: v for k, v in changes.items() if k.startswith(SIM_PREFIX)}
+    if sim_changes:
+        cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, **sim_changes))
+    out, stats = evaluate_original(objects, lefts, rights, cfg=cfg, protocol=protocol)
+    return out, int(stats["steps"])
+
+
+def run_peer(objects, lefts, rights, cfg, workers: int, changes: dict | None = None):
+    """The PyBullet original on every triple (sequences of ``Hulls``), in ``workers`` spawned
+    processes, one client each: ([N, 11] uint8 outcomes, total steps).
+
+    changes: ``OriginalProtocol`` fields to change (e.g. ``substeps=4``), and ``SimConfig`` fields
+        (the settings both protocols share: masses, friction) as "sim.FIELD".
+    """
+    n = len(objects)
+    bounds = np.linspace(0, n, max(1, min(workers, n)) + 1).astype(int)
+    chunks = [(objects[a:b], lefts[a:b], rights[a:b], cfg, dict(changes or {}))
+              for a, b in zip(bounds[:-1], bounds[1:])]
+    with ProcessPoolExecutor(len(chunks), mp_context=get_context("spawn")) as pool:
+        parts = list(pool.map(peer_chunk, chunks))
+    return np.concatenate([p[0] for p in parts]), sum(p[1] for p in parts)

@@ -26,12 +26,12 @@ import os
 import sys
 from pathlib import Path
 
-from f2f_jax import config  # no JAX here: the XLA flags set in main still take effect
-from f2f_jax.cli import reproducible
+from f2f_jax import config, run_plan  # no JAX here: the XLA flags set in main still take effect
+from f2f_jax.cli import reproducible, sim_options
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.data.sources import mesh_files
 from f2f_jax.errors import F2FError
-from f2f_jax.sim import ray_executor
+from f2f_jax.cli import overrides
 
 
 def _default_backend() -> str:
@@ -65,15 +65,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--run-dir", default="runs/cotrain")
     p.add_argument("--backend", choices=list(config.BACKENDS), default=None,
                    help="simulator (default: mjx on an accelerator, mujoco on a CPU)")
-    p.add_argument("--objectives", choices=["GS", "GS+R", "GS+S", "full", "imprint"], default=None,
-                   help="fitness outputs the generator maximises (Table 1 ablations); imprint: "
-                        "co-training's control, the same generator steps on imprints, no fitness net")
-    p.add_argument("--imprint-anchor", type=float, default=None, metavar="W",
-                   help="weight of the generator's latent distance to the imprint fingers during "
-                        "co-training (default: the config's; 0 = the paper's loss)")
+    p.add_argument("--objectives", choices=["GS", "GS+R", "GS+S", "full"], default=None,
+                   help="fitness outputs the generator maximises (Table 1 ablations)")
     p.add_argument("--from-pretrained", metavar="RUN_DIR", default=None,
                    help="start the cycles from another run's pretraining (objects, dataset, models); "
-                        "only co-training settings (--objectives, --imprint-anchor) may differ")
+                        "only co-training settings (--objectives, train.cycle_candidates, ...) may differ")
     p.add_argument("--sim-preset", default=None, choices=["fast", "reference"],
                    help="simulation preset (config.SIM_PRESETS): fast (default) or reference (coacd "
                         "objects, every phase at full length)")
@@ -88,7 +84,7 @@ def _parser() -> argparse.ArgumentParser:
                         "objects, held-out table, commit): the file design() loads; "
                         "f2f_jax/weights/default is the model the package ships")
     reproducible.add_cli_argument(p)
-    ray_executor.add_cli_arguments(p)
+    sim_options.add_cli_arguments(p)
     return p
 
 
@@ -118,10 +114,6 @@ def _run_config(args):
         changes["n_objects"] = args.n_objects
     if args.objectives is not None:
         changes["objectives"] = args.objectives
-    if args.imprint_anchor is not None:
-        if not args.imprint_anchor >= 0:
-            raise ValueError(f"--imprint-anchor must be >= 0, got {args.imprint_anchor}")
-        changes["imprint_anchor"] = args.imprint_anchor
     if args.seed is not None:
         if args.seed < 0:
             raise ValueError(f"--seed must be >= 0, got {args.seed}")
@@ -130,13 +122,13 @@ def _run_config(args):
         changes["cycles"] = args.cycles
     if changes:
         cfg = cfg.replace(train=dataclasses.replace(cfg.train, **changes))
-    return config.override(cfg, args.set)
+    return overrides.override(cfg, args.set)
 
 
 def _plan(cfg, config_name: str, memory: int | None) -> tuple[str, str | None]:
-    """What a run on built-in objects will simulate and hold (``config.planned_simulations``), and
+    """What a run on built-in objects will simulate and hold (``run_plan.planned_simulations``), and
     a warning when its rows would fill over 80% of ``memory`` bytes (None: unknown)."""
-    plan, rows = config.planned_simulations(cfg), config.planned_row_bytes(cfg)
+    plan, rows = run_plan.planned_simulations(cfg), run_plan.planned_row_bytes(cfg)
     text = (f"cotrain: {config_name} on {cfg.train.n_objects} built-in objects simulates about "
             f"{plan['total']:,} grasp evaluations (dataset {plan['dataset']:,}, cycles {plan['cycles']:,}, "
             f"held-out {plan['baselines'] + plan['heldout']:,}); its grasp rows take {rows / 2**30:.1f} GiB "
@@ -182,23 +174,20 @@ def main(argv=None) -> int:
         if warning:
             print(warning, file=sys.stderr, flush=True)
 
-    if args.executor == "ray" and args.backend not in (None, "mujoco"):
-        return fail(f"--executor ray distributes the mujoco backend; drop --backend {args.backend}")
+    if problem := sim_options.backend_problem(args, args.backend):
+        return fail(problem)
     backend = "mujoco" if args.executor == "ray" else args.backend or _default_backend()
     try:
-        executor = ray_executor.executor_from_cli(args)
+        executor = sim_options.executor_from_cli(args)
         # an existing run goes on with its own simulator unless --sim-preset says otherwise
-        run = CoTrainRun(args.run_dir, cfg, config_name=args.config, objects=args.objects,
-                         backend=backend, progress=not args.quiet, executor=executor,
-                         keep_simulator=args.sim_preset is None and not any(
-                             a.startswith(("sim.", "geometry.")) for a in args.set))
-        if args.from_pretrained:
-            src = str(Path(args.from_pretrained).resolve())
-            meta = Path(args.run_dir) / "run.json"
-            if not meta.exists():
-                run.fork_pretrained(src)
-            elif json.loads(meta.read_text()).get("pretrained_from") != src:
-                return fail(f"{args.run_dir} was not started from {src}; choose another --run-dir")
+        settings = dict(config_name=args.config, objects=args.objects, backend=backend,
+                        progress=not args.quiet, executor=executor,
+                        keep_simulator=args.sim_preset is None and not any(
+                            a.startswith(("sim.", "geometry.")) for a in args.set))
+        if args.from_pretrained:  # a new run directory is made from the source's pretraining
+            run = CoTrainRun.from_pretrained(args.run_dir, args.from_pretrained, cfg, **settings)
+        else:
+            run = CoTrainRun(args.run_dir, cfg, **settings)
         summary = run.run(cfg.train.cycles)
     except (F2FError, ValueError) as exc:  # ValueError: an object set made from other settings
         return fail(str(exc))

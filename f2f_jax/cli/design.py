@@ -29,7 +29,7 @@ import uuid
 import warnings
 from pathlib import Path
 
-from f2f_jax.cli import reproducible  # no JAX until reproducible_xla runs
+from f2f_jax.cli import reproducible, sim_options  # no JAX until reproducible_xla runs
 # numpy only, --help stays quick; design()'s defaults and geometry's scale modes live there
 from f2f_jax.config import BACKENDS, DEFAULT_CANDIDATES, DEFAULT_VERIFY, SCALES, UNITS
 
@@ -75,12 +75,7 @@ def _design_parser() -> argparse.ArgumentParser:
                    "of the moved copies' fields)")
     p.add_argument("--backend", choices=list(BACKENDS), default="mujoco",
                    help="simulator for --verify (default mujoco, on CPU threads)")
-    # as sim.ray_executor.add_cli_arguments, which would import the simulator before the checks
-    p.add_argument("--executor", default="threads", choices=["threads", "ray"],
-                   help="where --verify simulates: threads of this machine (default) or Ray tasks "
-                        "on a cluster (needs pip install -e \".[ray]\")")
-    p.add_argument("--ray-address", default=None, metavar="ADDR",
-                   help="--executor ray: the cluster's head, 'auto' or host:port")
+    sim_options.add_cli_arguments(p, what="--verify simulates")  # no simulator imported
     p.add_argument("--force", action="store_true", help="replace a non-empty --out directory")
     reproducible.add_cli_argument(p)
     return p
@@ -114,6 +109,8 @@ def main(argv: list[str] | None = None) -> int:
         return _fail(f"--copies must be >= 1, got {args.copies}")
     if args.xla_threads < 0:
         return _fail(f"--xla-threads must be >= 0, got {args.xla_threads}")
+    if args.verify and (problem := sim_options.backend_problem(args, args.backend)):
+        return _fail(problem)
     if args.units is not None and args.scale is None:
         args.scale = "real"
     if args.scale == "real" and args.units is None:
@@ -143,7 +140,6 @@ def _run_design(args) -> int:
     # Heavy imports (JAX, MuJoCo, trimesh) only after the cheap checks of main: a typo in a
     # path fails in a blink, and ``f2f-design --help`` answers at once.
     from f2f_jax.data.sources import load_mesh
-    from f2f_jax.sim.ray_executor import executor_from_cli
 
     mesh = load_mesh(args.mesh)
     reproducible.reproducible_xla(args.xla_threads)  # before JAX starts: the same designs everywhere
@@ -157,7 +153,7 @@ def _run_design(args) -> int:
 
     obj, placement = object_volume(mesh, nets.config.geometry, scale=args.scale,
                                    units=args.units, name=str(args.mesh))
-    executor = executor_from_cli(args) if args.verify else "threads"
+    executor = sim_options.executor_from_cli(args) if args.verify else "threads"
     with warnings.catch_warnings():
         # the one-line error below says it; the warning would repeat it
         warnings.simplefilter("ignore", design_module.InfeasibleDesignWarning)

@@ -15,16 +15,16 @@ import sys
 from pathlib import Path
 
 from f2f_jax import config
+from f2f_jax.cli import sim_options
 from f2f_jax.data import load_or_make_objects
-from f2f_jax.dataset.pretraining import build_grasp_dataset
+from f2f_jax.dataset.pretraining import PERTURB_AMPLITUDE, build_grasp_dataset
 from f2f_jax.dataset.store import GraspStore
 from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
-from f2f_jax.sim import ray_executor
 
 RECORD = "dataset.json"  # the settings a dataset directory's rows were made with
 FLAGS = {"config": "--config", "seed": "--seed", "sim_preset": "--sim-preset", "cut_pairs": "--cut-pairs",
-         "perturbed_pairs": "--perturbed-pairs", "perturbed_peak": "--perturbed-peak", "backend": "--backend"}
+         "perturbed_pairs": "--perturbed-pairs", "backend": "--backend"}
 
 
 def check_record(out: Path, record: dict) -> None:
@@ -38,6 +38,11 @@ def check_record(out: Path, record: dict) -> None:
         old = json.loads(path.read_text())
     except (OSError, ValueError) as exc:
         raise F2FError(f"{path}: unreadable ({exc}); move it away to start the dataset again") from exc
+    peak = old.get("perturbed_peak", PERTURB_AMPLITUDE)  # a flag up to commit dd4f091
+    if peak != PERTURB_AMPLITUDE:
+        raise F2FError(f"{out} holds perturbed pairs of peak {peak}, which this version no longer makes "
+                       f"(only {PERTURB_AMPLITUDE}); make it with f2f_jax at commit dd4f091, or choose "
+                       "another --out (nothing was changed)")
     differ = [k for k in FLAGS if k in old and old[k] != record[k]]
     if differ:
         resume = " ".join(f"{FLAGS[k]} {old[k]}" for k in differ)
@@ -60,14 +65,11 @@ def main(argv=None) -> int:
     p.add_argument("--perturbed-pairs", type=int, default=None,
                    help="perturbed imprint pairs per object (one object's designs that differ a little; "
                         "default: the config's train.perturbed_pairs)")
-    p.add_argument("--perturbed-peak", type=float, default=None,
-                   help="the largest perturbation, a share of the TSDF range in (0, 1]; the k-th of K "
-                        "pairs gets k / K of it (default: the config's train.perturbed_peak)")
     p.add_argument("--batch", type=int, default=None,
                    help="objects per stored chunk (default 8; with --executor ray, 2 per cluster "
                         "CPU, at least 8, so every CPU has work)")
     p.add_argument("--backend", default="mujoco", choices=list(config.BACKENDS))
-    ray_executor.add_cli_arguments(p)
+    sim_options.add_cli_arguments(p)
     args = p.parse_args(argv)
     if args.n <= 0:
         p.error("--n must be positive")
@@ -75,12 +77,10 @@ def main(argv=None) -> int:
         p.error("--batch must be positive")
     if args.cut_pairs < 0 or (args.perturbed_pairs is not None and args.perturbed_pairs < 0):
         p.error("--cut-pairs and --perturbed-pairs must be >= 0")
-    if args.perturbed_peak is not None and not 0.0 < args.perturbed_peak <= 1.0:
-        p.error(f"--perturbed-peak must be in (0, 1] (a share of the TSDF range), got {args.perturbed_peak}")
-    if args.executor == "ray" and args.backend != "mujoco":
-        p.error("--executor ray runs the mujoco backend")
+    if problem := sim_options.backend_problem(args, args.backend):
+        p.error(problem)
     try:
-        executor = ray_executor.executor_from_cli(args)
+        executor = sim_options.executor_from_cli(args)
     except F2FError as exc:  # the extra missing, or no cluster at --ray-address
         p.error(str(exc))
     cfg = config.get(args.config)
@@ -88,10 +88,8 @@ def main(argv=None) -> int:
         cfg = config.with_sim_preset(cfg, args.sim_preset)
     out = Path(args.out)
     n_perturbed = cfg.train.perturbed_pairs if args.perturbed_pairs is None else args.perturbed_pairs
-    peak = cfg.train.perturbed_peak if args.perturbed_peak is None else args.perturbed_peak
     record = {"config": args.config, "seed": args.seed, "sim_preset": config.sim_preset_name(cfg),
-              "cut_pairs": args.cut_pairs, "perturbed_pairs": n_perturbed, "perturbed_peak": peak,
-              "backend": args.backend}
+              "cut_pairs": args.cut_pairs, "perturbed_pairs": n_perturbed, "backend": args.backend}
     try:
         check_record(out, record)
     except F2FError as exc:
@@ -102,8 +100,7 @@ def main(argv=None) -> int:
     with atomic_path(out / RECORD) as tmp:
         tmp.write_text(json.dumps(record, indent=1))
     summary = build_grasp_dataset(tsdfs, names, store, cfg=cfg, seed=args.seed, batch_objects=args.batch,
-                                  n_cut=args.cut_pairs, n_perturbed=n_perturbed, perturb_peak=peak,
-                                  backend=args.backend,
+                                  n_cut=args.cut_pairs, n_perturbed=n_perturbed, backend=args.backend,
                                   executor=executor)
     print(json.dumps({"rows": len(store), "this_run": summary}, indent=1))
     return 0

@@ -9,8 +9,9 @@ Each argument is an ``experiments/evaluate.py`` output (its --out directory, def
 or the results.json in it).  Rows are matched by name across runs, so name every run's ``--extra``
 rows alike.  --objects held-out or fresh recounts every row on the runs' own held-out objects or
 on the new ones of ``evaluate.py --fresh``.  --paired "A minus B" (repeatable) prints generator A's
-gain over B on the candidates ``evaluate.py --neighbourhood K`` simulated for both, run by run and
-pooled over the runs (the fresh objects the runs share are resampled as one cluster each):
+gain over B on the candidates ``research/generator_candidates.py --neighbourhood K`` simulated for
+both (its OUT/candidates.json, read beside results.json), run by run and pooled over the runs (the
+fresh objects the runs share are resampled as one cluster each):
 
     python experiments/seed_table.py runs/s*/eval --paired "Fit2Form minus control"
 
@@ -46,8 +47,8 @@ def main(argv=None) -> int:
                    help="all the objects each run evaluated (default), only the run's held-out ones, "
                         "or only the new ones of evaluate.py --fresh")
     p.add_argument("--paired", action="append", default=[], metavar='"A minus B"',
-                   help="generator A minus generator B on evaluate.py --neighbourhood's candidates, "
-                        "run by run and pooled (repeatable)")
+                   help="generator A minus generator B on the candidates of research/"
+                        "generator_candidates.py --neighbourhood, run by run and pooled (repeatable)")
     p.add_argument("--out", default=None,
                    help="where to write the tables (default: print only)")
     args = p.parse_args(argv)

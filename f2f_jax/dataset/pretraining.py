@@ -18,7 +18,10 @@ from f2f_jax.sim import ray_executor
 KINDS = ("imprint", "wsg50", "cut")
 PERTURBED = "perturbed"  # the kind of a perturbed imprint pair
 PERTURB_GRID = 5  # the random field's coarse grid, per side, upsampled to the volume
-PERTURB_AMPLITUDE = 0.3  # the field's largest peak, as a share of the TSDF range [-1, 1] (TrainConfig.perturbed_peak)
+# The largest field's peak, as a share of the TSDF range [-1, 1] (the k-th of K pairs gets k / K of it):
+# at 0.3, 5 of 16 builtin objects' imprint + 6 perturbed pairs differ in any trial; at 0.6, 8
+# (docs/learning.md, benchmarks/RESULTS.md).
+PERTURB_AMPLITUDE = 0.3
 PERTURB_TRIES = 10  # draws per finger before a perturbed pair is skipped
 
 
@@ -41,17 +44,15 @@ def perturbed_finger(finger: np.ndarray, rng: np.random.Generator, geometry,
     return None
 
 
-def perturbed_pairs(left: np.ndarray, right: np.ndarray, n: int, rng: np.random.Generator, geometry,
-                    peak: float = PERTURB_AMPLITUDE) -> list[tuple[np.ndarray, np.ndarray, str]]:
+def perturbed_pairs(left: np.ndarray, right: np.ndarray, n: int, rng: np.random.Generator,
+                    geometry) -> list[tuple[np.ndarray, np.ndarray, str]]:
     """``n`` perturbed variants of the pair (``left``, ``right``), at peaks rising evenly to
-    ``peak`` (k / n of it for the k-th): from nearly the pair itself to clearly another design of
-    the same object.  A pair whose fingers cannot be perturbed feasibly is skipped, so fewer than
-    ``n`` may come back."""
-    if not 0.0 < peak <= 1.0:
-        raise ValueError(f"peak must be in (0, 1] (a share of the TSDF range), got {peak}")
+    ``PERTURB_AMPLITUDE`` (k / n of it for the k-th): from nearly the pair itself to clearly another
+    design of the same object.  A pair whose fingers cannot be perturbed feasibly is skipped, so
+    fewer than ``n`` may come back."""
     pairs = []
     for k in range(1, n + 1):
-        amplitude = peak * k / n
+        amplitude = PERTURB_AMPLITUDE * k / n
         new_left = perturbed_finger(left, rng, geometry, amplitude=amplitude)
         new_right = perturbed_finger(right, rng, geometry, amplitude=amplitude)
         if new_left is not None and new_right is not None:
@@ -61,12 +62,11 @@ def perturbed_pairs(left: np.ndarray, right: np.ndarray, n: int, rng: np.random.
 
 def pretraining_pairs(object_tsdfs: np.ndarray, index: int, rng: np.random.Generator, cfg: Config,
                       n_cut: int = 2, max_tries: int = 20, n_perturbed: int = 0,
-                      perturb_rng: np.random.Generator | None = None,
-                      perturb_peak: float = PERTURB_AMPLITUDE) -> list[tuple[np.ndarray, np.ndarray, str]]:
+                      perturb_rng: np.random.Generator | None = None) -> list[tuple[np.ndarray, np.ndarray, str]]:
     """Finger pairs to simulate on object ``index``: its imprint pair, the WSG50 pair, ``n_cut``
     pairs cut from two other random shapes each (left and right from different shapes, as the
     original did; shapes that give no feasible finger are skipped, up to ``max_tries``), then
-    ``n_perturbed`` perturbed imprint pairs (``perturbed_pairs``, peaks up to ``perturb_peak``) drawn from ``perturb_rng``, a
+    ``n_perturbed`` perturbed imprint pairs (``perturbed_pairs``) drawn from ``perturb_rng``, a
     stream of their own so that the other pairs are the same with or without them."""
     pairs = []
     left, right = imprint_fingers(object_tsdfs[index], cfg.geometry)
@@ -87,14 +87,13 @@ def pretraining_pairs(object_tsdfs: np.ndarray, index: int, rng: np.random.Gener
     if n_perturbed:
         if perturb_rng is None:
             raise ValueError("n_perturbed > 0 needs a perturb_rng")
-        pairs += perturbed_pairs(pairs[0][0], pairs[0][1], n_perturbed, perturb_rng, cfg.geometry,
-                                 peak=perturb_peak)
+        pairs += perturbed_pairs(pairs[0][0], pairs[0][1], n_perturbed, perturb_rng, cfg.geometry)
     return pairs
 
 
 def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config | None = None,
                         seed: int = 0, batch_objects: int | None = None, n_cut: int = 2,
-                        n_perturbed: int = 0, perturb_peak: float = PERTURB_AMPLITUDE, backend: str = "mujoco",
+                        n_perturbed: int = 0, backend: str = "mujoco",
                         progress: bool = True, executor: str = "threads") -> dict:
     """Simulate the pretraining pairs of every object into ``store``; resumable.
 
@@ -103,7 +102,7 @@ def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config |
     of a cluster has work in each batch), each batch one atomic chunk keyed by its object names, so a killed run loses at most
     the batch in flight and a rerun skips finished objects.  The finger pairs of object i depend
     only on (seed, i), never on what was already done; ``n_perturbed`` perturbed imprint pairs per
-    object (``pretraining_pairs``, peaks rising to ``perturb_peak``) come from ``default_rng([seed, i, 1])``.  executor: ``sim.evaluate``'s ("threads",
+    object (``pretraining_pairs``) come from ``default_rng([seed, i, 1])``.  executor: ``sim.evaluate``'s ("threads",
     or "ray": each batch's simulation in Ray tasks; the store is still written here, by the
     driver only).
     Returns counts and grasp success per kind for what this call simulated.
@@ -130,8 +129,7 @@ def build_grasp_dataset(object_tsdfs: np.ndarray, names, store, *, cfg: Config |
             rng = np.random.default_rng([seed, i])
             for left, right, kind in pretraining_pairs(object_tsdfs, i, rng, cfg, n_cut=n_cut,
                                                        n_perturbed=n_perturbed,
-                                                       perturb_rng=np.random.default_rng([seed, i, 1]),
-                                                       perturb_peak=perturb_peak):
+                                                       perturb_rng=np.random.default_rng([seed, i, 1])):
                 rows.append((i, left, right, kind))
         objs = np.stack([object_tsdfs[i] for i, *_ in rows])
         lefts = np.stack([r[1] for r in rows])

@@ -45,9 +45,7 @@ _CUT_ANGLES_DEG = (0.0, 45.0, 90.0, 135.0)
 _CUT_COS = np.cos(np.radians(_CUT_ANGLES_DEG))[:, None]
 _CUT_SIN = np.sin(np.radians(_CUT_ANGLES_DEG))[:, None]
 _MIN_SIDE = 0.5  # each side of a cut keeps >= 0.5 sqrt(n) of the tile's n columns
-# Distinct fingers whose pieces ``remembered_finger_hulls`` keeps (~7 KB each): the fixed
-# baselines of a batch (WSG50 pads beside every object) plus a cycle's worth of repeats.
-_REMEMBERED = 256
+_REMEMBERED = 256  # distinct fingers whose pieces ``remembered_finger_hulls`` keeps (~7 KB each)
 
 
 def finger_height_map(finger_tsdf, cfg=None) -> np.ndarray:
@@ -400,16 +398,13 @@ def finger_hulls(finger_tsdf, cfg=None, *, max_pieces: int | None = None,
 
     finger_tsdf: [R, R, R] finger volume, [iu, iv, iw], negative inside (config.py frames).
     Returns Hulls [max_pieces (cfg.finger_hulls), max_vertices (cfg.hull_vertices), 3] in the
-    finger's local frame.  The columns are split by straight cuts (0, 45, 90, 135 degrees) into
-    at most max_pieces tiles; each piece is the convex hull of one tile's columns from the mount
-    (w = 0) up to the height map.  With cover=False (default) each hull is also cut by the tile's
-    best-fit plane, offset so that the piece reaches into the empty space 0.8 times as far as it
-    falls short of the solid: over a concave bowl that about halves the intrusion of the plain
-    hull.  cover=True keeps the plain hulls, which contain the whole (undercut-filled) solid.
+    finger's local frame: at most max_pieces tiles cut at 0, 45, 90 or 135 degrees, each the hull
+    of its columns from the mount (w = 0) up to the height map.  cover=False (default) also cuts
+    each hull by the tile's best-fit plane, offset so that it reaches into the empty space 0.8
+    times as far as it falls short of the solid (over a bowl, about half the plain hull's
+    intrusion); cover=True keeps the plain hulls, which contain the whole (undercut-filled) solid.
     Tiles are split where the error is worst, along the cut after which planes fit both halves
-    best.  Undercuts are filled (module docstring).  Raises VolumeError for an invalid or empty
-    volume.
-    """
+    best.  Raises VolumeError for an invalid or empty volume."""
     g = geometry_config(cfg)
     k = max_pieces or g.finger_hulls
     v = max_vertices or g.hull_vertices
@@ -431,14 +426,10 @@ _memo_lock = threading.Lock()
 
 def remembered_finger_hulls(finger_tsdf, cfg=None) -> Hulls:
     """``finger_hulls(finger_tsdf, cfg)`` with its default settings, made once per distinct
-    finger volume and geometry and kept for the last ``_REMEMBERED`` of them.
-
-    The simulator asks for the pieces of every candidate's two fingers, and many batches repeat
-    fingers: the WSG50 pads or WSG-FMF fingers beside every object of a dataset or a table, the
-    same imprints scored under several settings.  Their pieces cost 30-90 ms each, as much as a
-    failed grasp's whole simulation.  The returned arrays are shared between callers and made
-    read-only.  Thread-safe; two threads that miss on the same finger at once both compute it.
-    """
+    finger volume and geometry and kept for the last ``_REMEMBERED`` of them: batches repeat
+    fingers (the WSG50 pads beside every object, imprints scored under several settings), whose
+    pieces cost 30-90 ms each.  The arrays are shared between callers and made read-only.
+    Thread-safe; two threads that miss on the same finger at once both compute it."""
     g = geometry_config(cfg)
     arr = np.ascontiguousarray(finger_tsdf)
     key = (hashlib.blake2b(arr.view(np.uint8).reshape(-1), digest_size=16).digest(),

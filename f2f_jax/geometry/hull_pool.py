@@ -69,7 +69,7 @@ def object_hulls_many(objects, cfg=None, *, cache_dir=None, workers: int | None 
 
     objects: sequence of [R, R, R] volumes (duplicates are decomposed once).  settings: coacd's
     (default ``CoacdSettings()``), e.g. another seed for a decomposition retest
-    (``benchmarks/sim_retest.py --perturb pieces``); they are part of the cache key.
+    (``research/sim_retest.py --perturb pieces``); they are part of the cache key.
     Returns one entry per object: its Hulls, or the error message of a volume that could not be
     decomposed (so one bad object does not stop a batch).
     """

@@ -25,6 +25,7 @@ from f2f_jax.errors import VolumeError
 from f2f_jax.nets.shape import RESOLUTION, Net, VolumeConv, batch_norm
 
 N_OUTPUTS = len(TRIAL_NAMES)  # grasp, S1..S4, R-30..R+30
+STEM_KERNEL = 5  # the first stride-2 convolution's kernel (paper: 5^3, padded to "same")
 
 
 def left_to_world(finger: jax.Array) -> jax.Array:
@@ -130,7 +131,7 @@ class FitnessNet(Net):
 
         x = volume[..., None].astype(self.dtype)
         for stage, (width, blocks) in enumerate(zip(cfg.fitness_channels, cfg.fitness_blocks)):
-            x = down(x, width, cfg.fitness_stem_kernel if stage == 0 else 3, f"down{stage}")
+            x = down(x, width, STEM_KERNEL if stage == 0 else 3, f"down{stage}")
             for b in range(blocks):
                 x = ResidualBlock(cfg, self.dtype, name=f"res{stage}_{b}")(x, train=train)
         x = down(x, cfg.fitness_channels[-1], 3, f"down{len(cfg.fitness_channels)}")

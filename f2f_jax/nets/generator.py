@@ -21,10 +21,10 @@ projective distance along w as imprints have (an imprint and its height map's TS
 same solid voxels; imprints also hold -1 in their base half, where this holds the distance).
 Through the shape auto-encoder an imprint loses ~1.9 trials of 11 (its faces move ~2 voxels);
 this generator, pretrained on imprints alone, came within 0.7 trials of them
-(``benchmarks/finger_fidelity.py``, benchmarks/RESULTS.md).
+(``research/finger_fidelity.py``, benchmarks/RESULTS.md).
 
 Both generators answer the same calls: ``latents`` (finger codes), ``decode`` (codes -> TSDFs),
-``imprint_distance`` (the pretraining loss and co-training anchor), ``code_range`` and
+``imprint_distance`` (the pretraining loss), ``code_range`` and
 ``code_dim`` (the box and size of a finger code), and keep their trainable
 network in ``params["embedding"]``; ``generator_module(net_cfg)`` picks one.
 """
@@ -37,7 +37,15 @@ from flax import linen as nn
 
 from f2f_jax.config import NetConfig
 from f2f_jax.errors import ConfigError
-from f2f_jax.nets.shape import RESOLUTION, Net, ShapeDecoder, ShapeEncoder, check_volume_batch, dense_layers
+from f2f_jax.nets.shape import (
+    RESOLUTION,
+    TRUNCATION_VOXELS,
+    Net,
+    ShapeDecoder,
+    ShapeEncoder,
+    check_volume_batch,
+    dense_layers,
+)
 
 
 class Generator(Net):
@@ -127,7 +135,7 @@ class FingerGenerator(Net):
 
     def imprint_distance(self, zl: jax.Array, zr: jax.Array, left: jax.Array, right: jax.Array) -> jax.Array:
         """Latent MSE between finger latents (zl, zr) [B, latent_dim] and the frozen encoder's means
-        of fingers (left, right) [B, 40, 40, 40]: the pretraining loss and co-training anchor."""
+        of fingers (left, right) [B, 40, 40, 40]: the pretraining loss."""
         tl, tr = (jax.lax.stop_gradient(self.encoder(x, train=False)[0]) for x in (left, right))
         return jnp.mean(jnp.square(jnp.concatenate([zl, zr], 1) - jnp.concatenate([tl, tr], 1)))
 
@@ -220,11 +228,11 @@ class HeightGenerator(Net):
         past the cube's far face gives a full column all the same, and a clip would cut the
         gradient that brings an overshooting column back."""
         r = RESOLUTION
-        return heights_to_tsdf(h.reshape(h.shape[0], r, r), self.config.height_truncation_voxels)
+        return heights_to_tsdf(h.reshape(h.shape[0], r, r), TRUNCATION_VOXELS)
 
     def imprint_distance(self, zl: jax.Array, zr: jax.Array, left: jax.Array, right: jax.Array) -> jax.Array:
         """Mean absolute height difference (voxels) between codes (zl, zr) and the height maps of
-        fingers (left, right) [B, 40, 40, 40]: the pretraining loss (L1) and co-training anchor."""
+        fingers (left, right) [B, 40, 40, 40]: the pretraining loss (L1)."""
         n = zl.shape[0]
         target = jax.lax.stop_gradient(tsdf_heights(jnp.concatenate([left, right], 0)).reshape(2 * n, -1))
         return jnp.mean(jnp.abs(jnp.concatenate([zl, zr], 0) - target))

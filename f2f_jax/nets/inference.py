@@ -158,7 +158,7 @@ def perturbed_heights(fingers: np.ndarray, sd_voxels: float, truncation_voxels: 
     field: standard deviation ``sd_voxels`` at the points of a ``HEIGHT_NOISE_GRID``^2 grid over the
     mount, bilinear between them (``smooth_field``, the form of the height generator's own
     candidates), then voxelised again (``heights_to_tsdf``).  A printer's error, or any change of a
-    finger finer than a voxel: ``design(..., tolerance=...)`` and ``benchmarks/sim_retest.py
+    finger finer than a voxel: ``design(..., tolerance=...)`` and ``research/sim_retest.py
     --perturb heights`` simulate fingers moved so.
 
     Columns without solid stay empty; columns solid up to the cube's far face stay as they are (a

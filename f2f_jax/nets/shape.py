@@ -34,6 +34,9 @@ from f2f_jax.config import GeometryConfig, NetConfig
 from f2f_jax.errors import VolumeError
 
 RESOLUTION = GeometryConfig().resolution  # 40: every volume the nets see is 40^3
+# the truncation (voxels) of the finger TSDFs the height generator writes: the geometry's, so the
+# fitness net sees imprint-like volumes
+TRUNCATION_VOXELS = GeometryConfig().truncation_voxels
 
 
 def check_volume_batch(x: jax.Array, name: str, resolution: int = RESOLUTION) -> None:

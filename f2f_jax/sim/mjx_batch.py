@@ -89,10 +89,6 @@ class MjxGraspSimulator:
     """
 
     def __init__(self, template: mujoco.MjModel, cfg: Config):
-
-        if cfg.sim.push_point != "com":
-            raise ValueError("the MJX backend pushes at the centre of mass; push_point='origin' "
-                             "is plain MuJoCo's (backend='mujoco')")
         self.cfg = cfg
         self.sizes = ConvexSizes.for_vertices(cfg.geometry.hull_vertices)
         self.ids = scene_ids(template)

@@ -5,7 +5,7 @@ x 32 finger pieces = 256 functions: tens of minutes to compile).  Here every pie
 is padded to one size (``ConvexSizes``) and the mesh-mesh pairs form a single group whose
 collider gathers each pair's data by geom, so one vmapped function serves them all; MJX's
 ``max_geom_pairs`` broad phase keeps only the closest pairs each step.  The fingers' pairs with
-each other (``SimConfig.finger_collisions``) are a second such group, with a cap of their own, and
+each other are a second such group, with a cap of their own, and
 the floor's pairs with every piece a third; ``max_contact_points`` keeps the solver's problem at
 the deepest 96 contacts.  This relies on MJX internals of mujoco-mjx 3.17 (pinned):
 ``collision_driver._geom_groups`` and ``_COLLISION_FUNC``.

@@ -1,7 +1,7 @@
 """Reference backend: plain MuJoCo on CPUs, one model per candidate.
 
 Each candidate (object, left finger, right finger) becomes its own compiled model
-(``scene.build_model``) and runs the 11 trials (``protocol.run_trials``) in a worker thread;
+(``scene.build_model``) and runs the 11 trials in a worker thread (``protocol.simulate_candidate``);
 MuJoCo releases the GIL inside ``mj_step``, so threads scale over cores.  Past one machine,
 ``executor="ray"`` runs the same per-candidate work in Ray tasks (``sim.ray_executor``).
 Results depend only on the inputs: each candidate is simulated alone, single-threaded, from the
@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from f2f_jax.config import BACKENDS, Config, with_sim_preset
+from f2f_jax.config import BACKENDS, Config, executor_problem, with_sim_preset
 from f2f_jax.errors import F2FError, VolumeError
 from f2f_jax.geometry.finger_tiling import remembered_finger_hulls
 from f2f_jax.geometry.fingers import feasibility_report
@@ -27,14 +27,13 @@ from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.pieces import object_pieces_many as make_object_hulls_many
 from f2f_jax.geometry.tsdf import check_tsdf
 from f2f_jax.sim import ray_executor  # imports Ray itself only when asked to run on it
-from f2f_jax.sim.protocol import TrialResult, run_trials
+from f2f_jax.sim.protocol import TrialResult, simulate_candidate
 from f2f_jax.sim.scene import build_model
 
 log = logging.getLogger(__name__)
 
 # Above this many candidates a progress bar is shown when progress=None.
 _AUTO_PROGRESS = 32
-EXECUTORS = ("threads", "ray")
 
 
 @dataclass
@@ -92,28 +91,17 @@ def _object_offsets(object_xy, n: int) -> np.ndarray | None:
     return xy
 
 
-def simulate_candidate(obj_hulls: Hulls | str, left: np.ndarray, right: np.ndarray, cfg: Config,
-                       object_xy=None) -> TrialResult:
-    """Hulls, model and trials of one feasible candidate; any geometry error is a failure.
-    obj_hulls: the object's pieces, or the error message of an object that has none (scored
-    zeros).  object_xy: None or (x, y) m, the object's shift on the floor (``scene.build_model``)."""
-    if isinstance(obj_hulls, str):
-        return TrialResult.zeros(cfg.sim.n_trials, error=f"object hulls: {obj_hulls}")
-    place = {} if object_xy is None else {"object_xy": (float(object_xy[0]), float(object_xy[1]))}
-    try:
-        model = build_model(obj_hulls, remembered_finger_hulls(left, cfg),
-                            remembered_finger_hulls(right, cfg), cfg, **place)
-    except (F2FError, ValueError) as exc:
-        return TrialResult.zeros(cfg.sim.n_trials, error=f"{type(exc).__name__}: {exc}")
-    return run_trials(model, cfg)
-
-
+# evaluate's keywords stay flat, the executor's options among them (executor, threads,
+# ray_address, task_size): the tables, the dataset, co-training and design() pass
+# ``executor="ray"`` through as one string, and an options object would only wrap it.
 def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | None = None,
              threads: int | None = None, progress: bool | None = None, object_hulls=None,
-             cache_dir=None, return_info: bool = False, object_xy=None,
-             preset: str | None = None, executor: str = "threads", ray_address: str | None = None,
-             task_size: int | None = None):
-    """Simulate the 11 trials of N (object, left finger, right finger) triples.
+             cache_dir=None, object_xy=None, preset: str | None = None,
+             executor: str = "threads", ray_address: str | None = None,
+             task_size: int | None = None) -> np.ndarray:
+    """Simulate the 11 trials of N (object, left finger, right finger) triples: outcomes [N, 11]
+    uint8 in ``TRIAL_NAMES`` order.  ``evaluate_with_info`` takes the same arguments and also
+    returns the call's EvaluationInfo.
 
     objects, lefts, rights: [N, 40, 40, 40] float32 TSDF arrays (or length-N sequences of
         [40, 40, 40]), negative inside, in the frames of config.py.
@@ -134,7 +122,6 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     object_hulls: precomputed object pieces (Hulls), one for all or a length-N sequence; default
         makes them by ``cfg.geometry.object_method`` (``geometry.pieces.object_pieces``: coacd
         cached on disk in ``cache_dir``, or tiles in ~0.15 s), once per distinct object.
-    return_info: also return an EvaluationInfo.
     preset: a simulation preset of ``config.SIM_PRESETS`` applied to cfg ("fast", the default
         of every config, or "reference"); None keeps cfg as it is.  The "mjx" and "warp"
         backends run every phase to its full length whatever the preset (their batches step all
@@ -144,12 +131,25 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         the closing direction); the robustness grasps turn it about its shifted centre.  Only
         the "mujoco" backend; "mjx" and "warp" raise NotImplementedError.
 
-    Returns outcomes [N, 11] uint8 in ``TRIAL_NAMES`` order (and the info).  A candidate with an
-    infeasible finger scores zeros without simulation; one whose hulls or model cannot be built
-    scores zeros and is counted in ``info.failed``; the rest of the batch is still evaluated.
-    Raises VolumeError (naming the index) for volumes of the wrong shape, NaN values or an empty
-    object, ValueError for inputs of different lengths.
+    A candidate with an infeasible finger scores zeros without simulation; one whose hulls or
+    model cannot be built scores zeros (``EvaluationInfo.failed``); the rest of the batch is
+    still evaluated.  Raises VolumeError (naming the index) for volumes of the wrong shape, NaN
+    values or an empty object, ValueError for inputs of different lengths.
     """
+    return evaluate_with_info(objects, lefts, rights, backend=backend, cfg=cfg, threads=threads,
+                              progress=progress, object_hulls=object_hulls, cache_dir=cache_dir,
+                              object_xy=object_xy, preset=preset, executor=executor,
+                              ray_address=ray_address, task_size=task_size)[0]
+
+
+def evaluate_with_info(objects, lefts, rights, *, backend: str = "mujoco",
+                       cfg: Config | None = None, threads: int | None = None,
+                       progress: bool | None = None, object_hulls=None, cache_dir=None,
+                       object_xy=None, preset: str | None = None, executor: str = "threads",
+                       ray_address: str | None = None,
+                       task_size: int | None = None) -> tuple[np.ndarray, EvaluationInfo]:
+    """``evaluate``'s outcomes [N, 11] uint8 and the call's EvaluationInfo (steps, unstable
+    trials, infeasible and failed candidates, ...); the arguments are ``evaluate``'s."""
     _check_choices(backend, executor)
     cfg = cfg or Config()
     if preset is not None:
@@ -170,7 +170,7 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
     if backend != "mujoco":
         return _evaluate_batched(backend, objs, lefts, rights, feasible, cfg,
                                  object_hulls=object_hulls, cache_dir=cache_dir,
-                                 return_info=return_info, progress=progress)
+                                 progress=progress)
     start = time.perf_counter()
     todo = np.nonzero(feasible)[0]
     results: list[TrialResult | None] = [None] * n
@@ -185,20 +185,16 @@ def evaluate(objects, lefts, rights, *, backend: str = "mujoco", cfg: Config | N
         _run_threads(objs, lefts, rights, todo, cfg, results, threads=threads, show=show,
                      hull_list=hull_list, offsets=offsets,
                      cache_dir=cache_dir, progress=progress)
-    outcomes, info = _gathered(results, todo, feasible, cfg.sim.n_trials, time.perf_counter() - start)
-    return (outcomes, info) if return_info else outcomes
-
+    return _gathered(results, todo, feasible, cfg.sim.n_trials, time.perf_counter() - start)
 
 
 def _check_choices(backend: str, executor: str) -> None:
     """Refuse unknown or unsupported backend/executor choices, and a missing extra, before any work."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; choose one of {BACKENDS}")
-    if executor not in EXECUTORS:
-        raise ValueError(f"unknown executor {executor!r}; choose one of {EXECUTORS}")
-    if executor == "ray" and backend != "mujoco":
-        raise ValueError(f"executor='ray' distributes the 'mujoco' backend; the {backend!r} "
-                         "backend batches every candidate on this machine's accelerators")
+    problem = executor_problem(executor, backend)  # config.EXECUTORS: the names and their rules
+    if problem is not None:
+        raise ValueError(problem)
     if executor == "ray":
         ray_executor.require_ray()  # before any work: a missing extra is the first thing said
     if backend == "warp":  # before any work: importing it raises MissingExtraError without warp
@@ -252,6 +248,7 @@ def _gathered(results: list, todo: np.ndarray, feasible: np.ndarray, n_trials: i
         initial_contacts=field("initial_contacts"), seconds=seconds, results=results)
     return outcomes, info
 
+
 def _run_threads(objs, lefts, rights, todo, cfg, results, *, threads, show, hull_list, offsets,
                  cache_dir, progress) -> None:
     """evaluate(executor="threads"): results[i] for i in todo, from a pool of worker threads."""
@@ -291,7 +288,7 @@ def batched_model_options(backend: str) -> dict:
 
 
 def _evaluate_batched(backend, objs, lefts, rights, feasible, cfg, *, object_hulls, cache_dir,
-                      return_info, progress):
+                      progress) -> tuple[np.ndarray, EvaluationInfo]:
     """evaluate(..., backend="mjx" | "warp"): models built here on the CPU, one layout, trials
     batched in MJX (``sim.mjx_batch``) or MuJoCo Warp (``sim.warp_batch``)."""
     batched = importlib.import_module(f"f2f_jax.sim.{backend}_batch")
@@ -328,8 +325,6 @@ def _evaluate_batched(backend, objs, lefts, rights, feasible, cfg, *, object_hul
         outcomes[index] = res["outcome"]
         steps[index] = res["steps"]
         unstable[index] = res["unstable"]
-    if not return_info:
-        return outcomes
     info = EvaluationInfo(
         steps=steps, unstable=unstable, infeasible=~feasible,
         failed=np.array([i in errors for i in range(n)], bool), errors=errors,

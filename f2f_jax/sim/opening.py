@@ -26,7 +26,7 @@ from f2f_jax.sim.scene import SceneIds, finger_object_distance
 
 LINE_SPACING = 0.001  # m between the lines of the host's (and warp's) grid: 61 x 61 lines
 # MJX traces every line into each step's program: 1.5 mm (41 x 41 lines) halves its cost, and its
-# agreement with plain MuJoCo is measured with it (benchmarks/mjx_agreement.py)
+# agreement with plain MuJoCo is measured with it (benchmarks/sim_agreement.py --backends mjx mujoco)
 MJX_LINE_SPACING = 0.0015
 BACKOFF_ROUNDS = 8  # exact-distance corrections after the line rule, at most
 _PARALLEL = 1e-12  # |n_x| below this: a facet parallel to the lines

@@ -36,8 +36,17 @@ import mujoco
 import numpy as np
 
 from f2f_jax.config import TRIAL_NAMES, Config
+from f2f_jax.errors import F2FError
+from f2f_jax.geometry.finger_tiling import remembered_finger_hulls
+from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.sim.opening import JawOpener
-from f2f_jax.sim.scene import SceneIds, finger_object_contacts, object_quat, scene_ids
+from f2f_jax.sim.scene import (
+    SceneIds,
+    build_model,
+    finger_object_contacts,
+    object_quat,
+    scene_ids,
+)
 
 # Steps between health checks: 50 ms of simulated time, short enough that an exploding state is
 # caught before it does anything but fail its own trial, long enough that Python's overhead
@@ -346,11 +355,6 @@ class GraspRunner:
         d.xfrc_applied[:] = 0.0
         force = s.push_force * np.asarray(direction, np.float64)
         d.xfrc_applied[ids.object_body, :3] = force
-        if s.push_point == "origin":  # the same force through the world origin: add its moment
-            # about the centre of mass, taken where the push starts
-            d.xfrc_applied[ids.object_body, 3:] = np.cross(-d.xipos[ids.object_body], force)
-        elif s.push_point != "com":
-            raise ValueError(f"SimConfig.push_point {s.push_point!r}: 'com' or 'origin'")
         below = z_start + s.success_min_height
         running = self.advance(s.steps(s.push_time), stop_below=below)
         d.xfrc_applied[ids.object_body, :] = 0.0
@@ -402,3 +406,21 @@ def run_trials(model: mujoco.MjModel, cfg: Config | None = None, *,
     result.steps = runner.steps
     result.seconds = time.perf_counter() - start
     return result
+
+
+def simulate_candidate(obj_hulls: Hulls | str, left: np.ndarray, right: np.ndarray, cfg: Config,
+                       object_xy=None) -> TrialResult:
+    """Hulls, model and trials of one feasible candidate: the work of one worker thread
+    (``mujoco_cpu``) or one Ray task's candidate (``ray_executor``); any geometry error is a
+    failure, never raised.  obj_hulls: the object's pieces, or the error message of an object
+    that has none (scored zeros).  object_xy: None or (x, y) m, the object's shift on the floor
+    (``scene.build_model``)."""
+    if isinstance(obj_hulls, str):
+        return TrialResult.zeros(cfg.sim.n_trials, error=f"object hulls: {obj_hulls}")
+    place = {} if object_xy is None else {"object_xy": (float(object_xy[0]), float(object_xy[1]))}
+    try:
+        model = build_model(obj_hulls, remembered_finger_hulls(left, cfg),
+                            remembered_finger_hulls(right, cfg), cfg, **place)
+    except (F2FError, ValueError) as exc:
+        return TrialResult.zeros(cfg.sim.n_trials, error=f"{type(exc).__name__}: {exc}")
+    return run_trials(model, cfg)

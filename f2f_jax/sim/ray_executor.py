@@ -41,7 +41,7 @@ from f2f_jax.config import Config
 from f2f_jax.errors import F2FError, MissingExtraError
 from f2f_jax.geometry.hulls import Hulls
 from f2f_jax.geometry.pieces import cached_pieces, keep_pieces, object_pieces
-from f2f_jax.sim.protocol import TrialResult
+from f2f_jax.sim.protocol import TrialResult, simulate_candidate
 
 log = logging.getLogger(__name__)
 
@@ -112,8 +112,6 @@ def trials_task(cfg: Config, candidates: list, *pieces) -> list[TrialResult]:
     """The 11 trials of each candidate (slot, left, right, object_xy or None) in turn; slot
     indexes ``pieces``, the task's objects (Hulls, or a hull error message).  A candidate that
     raises is a failed candidate, not a failed task."""
-    from f2f_jax.sim.mujoco_cpu import simulate_candidate  # mujoco_cpu imports this module
-
     out = []
     for slot, left, right, xy in candidates:
         try:
@@ -239,31 +237,7 @@ def _object_refs(ray, pieces_remote, objs, todo: list[int], hull_list, g, cache_
         key_of[i] = key
     return refs, key_of, making
 
+
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()
     return text[0][:300] if text else ""
-
-
-
-# -- the command lines' --executor / --ray-address -----------------------------------------------
-def add_cli_arguments(parser) -> None:
-    """``--executor {threads,ray}`` and ``--ray-address ADDR`` on an argparse parser."""
-    parser.add_argument("--executor", default="threads", choices=["threads", "ray"],
-                        help="where simulation runs: threads of this machine (default) or Ray "
-                             f"tasks on a cluster (needs {RAY_INSTALL})")
-    parser.add_argument("--ray-address", default=None, metavar="ADDR",
-                        help="--executor ray: the cluster's head, 'auto' or host:port (default: a "
-                             "cluster started on this machine by `ray start`, else a local one)")
-
-
-def executor_from_cli(args) -> str:
-    """The parsed --executor; for "ray", joins (or starts) the cluster now, so a missing extra
-    or a wrong address is said before any work, and prints what it joined."""
-    if args.executor == "ray":
-        ray = connect(args.ray_address)
-        nodes = sum(1 for node in ray.nodes() if node.get("Alive"))
-        print(f"ray: {cluster_cpus(ray)} CPUs on {nodes} node(s), cluster "
-              f"{ray.get_runtime_context().gcs_address}", flush=True)
-    elif args.ray_address is not None:
-        raise SystemExit("--ray-address needs --executor ray")
-    return args.executor

@@ -29,8 +29,9 @@ ASSET_DIR = Path(__file__).resolve().parents[1] / "assets" / "wsg50"
 GRIPPER_XML = ASSET_DIR / "wsg50.xml"
 
 # Collision bits (see the XML's header): the floor and the fingers each have one bit, the object
-# accepts both; with SimConfig.finger_collisions (the default) the fingers accept the finger
-# bit too, so they also meet the other jaw's fingers; nothing else collides.
+# accepts both; the fingers accept the finger bit too, so they also meet the other jaw's fingers
+# (as real fingers and the original's gripper, self-collision on, do: no design closes by passing
+# through its partner); nothing else collides.
 FLOOR_BIT = 1
 FINGER_BIT = 2
 OBJECT_AFFINITY = FLOOR_BIT | FINGER_BIT
@@ -295,11 +296,10 @@ def _add_finger(spec: mujoco.MjSpec, side: str, hulls: Hulls | None, cfg: Config
     """One finger's pieces on its jaw, rotated from (u, v, w) into the jaw frame."""
     s = cfg.sim
     finger_geom = dict(condim=s.condim, priority=1, friction=[friction, 0.005, 0.0001], group=2)
-    # with SimConfig.finger_collisions the fingers also meet the other jaw's fingers (pieces on
-    # one jaw share a body, which MuJoCo never collides with itself).  Not the floor: the
-    # fingers' cube reaches a voxel below it (GeometryConfig.rest_offset, as the object's volume
-    # does), and a floor pressing on that layer would drag the closing jaws.
-    finger_affinity = FINGER_BIT if s.finger_collisions else 0
+    # the fingers also meet the other jaw's fingers (pieces on one jaw share a body, which MuJoCo
+    # never collides with itself).  Not the floor: the fingers' cube reaches a voxel below it
+    # (GeometryConfig.rest_offset, as the object's volume does), and a floor pressing on that
+    # layer would drag the closing jaws.
     pose = finger_pose(side, 0.0, cfg)
     rot = pose[:3, :3]
     jaw = spec.body(f"{side}_jaw")
@@ -313,12 +313,12 @@ def _add_finger(spec: mujoco.MjSpec, side: str, hulls: Hulls | None, cfg: Config
             _hull_volume(piece, f"{side} finger hulls piece {k}")
         bits = FINGER_BIT if (real or pad_collides) else 0
         _add_piece(spec, jaw, f"{side}_{k}", (piece if real else pad) @ rot.T, contype=bits,
-                   conaffinity=finger_affinity if bits else 0,
+                   conaffinity=FINGER_BIT if bits else 0,
                    rgba=[0.25, 0.45, 0.8, 1.0] if real else [0, 0, 0, 0], **finger_geom)
     if flat_tips:
         tip = spec.geom(f"{side}_tip")
         tip.contype = FINGER_BIT
-        tip.conaffinity = finger_affinity
+        tip.conaffinity = FINGER_BIT
         tip.friction = [friction, 0.005, 0.0001]
         tip.condim = s.condim
         tip.group = 2

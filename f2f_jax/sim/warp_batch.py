@@ -315,9 +315,6 @@ class WarpGraspSimulator:
         approach_seconds (computing the openings), devices,
         overflowed (worlds failed by a full buffer: a warning is logged), peak_pairs (broad-phase
         pairs per world, most in one chunk), peak_rows)."""
-        if self.cfg.sim.push_point != "com":
-            raise ValueError("the warp backend pushes at the centre of mass; push_point="
-                             "'origin' is plain MuJoCo's (backend='mujoco')")
         table = self.prepare(models)
         s = self.cfg.sim
         host: dict = {}

@@ -8,7 +8,9 @@ prints).  Not to be confused with ``sim.evaluate``, the simulator call the table
 
 ``paper``: the paper's figures and Table 2's conditions; ``designers``: the rows as callables;
 ``table``: Tables 1 and 2 simulated and written; ``stats``: fitness ranking, neighbourhoods, gains;
-``seeds``: the tables of several runs (seeds) as mean ± sd, each row against a reference row.
+``seeds``: the tables of several runs (seeds) as mean ± sd, each row against a reference row;
+``rows``: the rows and objects an evaluation of a run scores (``experiments/evaluate.py`` and the
+studies in ``research/``).
 """
 
 from f2f_jax.tables.designers import (

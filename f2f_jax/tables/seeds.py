@@ -13,8 +13,9 @@ A run's rows are matched by name (name ``--extra`` rows the same way in every ru
 some runs lack is averaged over the runs that have it and says how many.  ``objects="held-out"``
 or ``"fresh"`` recounts every row on the run's own held-out objects or on the new ones that
 ``evaluate.py --fresh`` added (named ``fresh/...``), from the per-object outcomes results.json keeps.
-``paired_over_runs`` pools one generator's paired gain over another (``evaluate.py
---neighbourhood``) over the runs, with the fresh objects the runs share resampled as one each.
+``paired_over_runs`` pools one generator's paired gain over another (``research/
+generator_candidates.py --neighbourhood``, its candidates.json read beside results.json) over the
+runs, with the fresh objects the runs share resampled as one each.
 """
 
 from __future__ import annotations
@@ -86,6 +87,8 @@ def load_results(path) -> dict:
         results = json.loads(file.read_text())
     except json.JSONDecodeError as exc:
         raise ValueError(f"{file}: not a results.json of experiments/evaluate.py ({exc})") from None
+    if isinstance(results, dict) and (beside := file.parent / "candidates.json").exists():  # --paired
+        results["neighbourhood"] = json.loads(beside.read_text()).get("neighbourhood", results.get("neighbourhood"))
     if not isinstance(results, dict) or not any(k in results for k in KINDS):
         raise ValueError(f"{file}: holds neither table1 nor table2 (was evaluate.py run with "
                          "--tables 1 or 2?)")
@@ -359,8 +362,8 @@ def _fresh_set(results: Mapping) -> str | None:
 
 def paired_over_runs(results: Sequence[Mapping], labels: Sequence[str], after: str, before: str, *,
                      objects: str = "all", n_boot: int = 10000, seed: int = 0) -> dict:
-    """Generator ``after`` minus generator ``before`` on the candidates ``evaluate.py
-    --neighbourhood`` simulated for both, run by run and pooled over the runs.
+    """Generator ``after`` minus generator ``before`` on the candidates ``research/
+    generator_candidates.py --neighbourhood`` simulated for both, run by run and pooled over the runs.
 
     results / labels as for ``combine_results`` (results with one label are one run; the first of
     them that holds both generators' outcomes counts).  Returns {"runs": {label:
@@ -409,7 +412,7 @@ def paired_over_runs(results: Sequence[Mapping], labels: Sequence[str], after: s
     skipped = [lab for lab in dict.fromkeys(labels) if lab not in runs]
     if not runs:
         raise ValueError(f"no run holds neighbourhood outcomes of both {after!r} and {before!r} "
-                         "(evaluate.py --neighbourhood K with both generators in one call)")
+                         "(research/generator_candidates.py --neighbourhood K with both in one call)")
     cluster_names, cluster = np.unique(np.array(keys), return_inverse=True)
     n_clusters = len(cluster_names)
     rng = np.random.default_rng(seed)

@@ -272,12 +272,12 @@ def _simulate_designs(designers: Mapping[str, Designer | Design], objs, hulls, c
     def simulate(designs):
         n, keys = len(objs), list(designs)
         start = time.perf_counter()
-        out, info = sim.evaluate(
+        out, info = sim.evaluate_with_info(
             np.concatenate([objs] * len(keys)),
             np.concatenate([designs[k].lefts for k in keys]),
             np.concatenate([designs[k].rights for k in keys]),
             backend=backend, cfg=cfg, progress=progress, object_hulls=hulls * len(keys),
-            return_info=True, executor=executor,
+            executor=executor,
             **({} if object_xy is None else {"object_xy": np.concatenate([object_xy] * len(keys))}))
         seconds = time.perf_counter() - start
         return ({k: out[j * n:(j + 1) * n] for j, k in enumerate(keys)},

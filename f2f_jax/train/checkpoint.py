@@ -48,12 +48,36 @@ def config_to_dict(cfg: Config) -> dict:
 
 
 # Fields added after runs were first saved, with the value those runs were made with: a run
-# directory from before the simulation presets was simulated by what is now "reference".
-_BEFORE_PRESETS = {"GeometryConfig": SIM_PRESETS["reference"]["geometry"],
+# directory from before the simulation presets was simulated by what is now "reference", on coacd
+# object pieces.
+_BEFORE_PRESETS = {"GeometryConfig": {"object_method": "coacd"},
                    "SimConfig": SIM_PRESETS["reference"]["sim"]}
+
+# Fields that have left the config (commit dd4f091 is the last to have them), with the value
+# whose behaviour stayed: a record holding that value reads as today's config; any other value
+# is refused, since today's code cannot run it.
+RETIRED_FIELDS = {
+    "SimConfig": {"push_point": "com", "finger_collisions": True},
+    "NetConfig": {"height_truncation_voxels": 5.0, "fitness_stem_kernel": 5},
+    "TrainConfig": {"gn_anneal_epochs": 0, "fn_refit_steps": None, "imprint_anchor": 0.0,
+                    "anchor_target": "imprint", "perturbed_peak": 0.3},
+}
+# Values that have left a field that stays (commit dd4f091 is the last to have them): a record
+# holding one is refused.  "imprint" was co-training's control (docs/learning.md has its result).
+RETIRED_VALUES = {"TrainConfig": {"objectives": ("imprint",)}}
 
 
 def _section(cls, values: dict):
+    for name, kept in RETIRED_FIELDS.get(cls.__name__, {}).items():
+        if name in values and values[name] != kept:
+            raise CheckpointError(
+                f"the recorded config sets {name}={values[name]!r}, a setting this version no longer "
+                f"has (only {kept!r} remains); run it with f2f_jax at commit dd4f091")
+    for name, gone in RETIRED_VALUES.get(cls.__name__, {}).items():
+        if values.get(name) in gone:
+            raise CheckpointError(
+                f"the recorded config sets {name}={values[name]!r}, a value this version no longer "
+                f"has; run it with f2f_jax at commit dd4f091")
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name not in values:

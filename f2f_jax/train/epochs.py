@@ -11,6 +11,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from f2f_jax.errors import F2FError
+from f2f_jax.train.steps import shard
 
 
 class NaNLossError(F2FError, FloatingPointError):
@@ -37,6 +38,18 @@ class LazyBatches:
     def __iter__(self):
         for i, b in enumerate(self.index_batches):
             yield self.make(i, b)
+
+
+def row_batches(*parts: dict, idx_batches) -> LazyBatches:
+    """Fitness-net batches (object, left, right, outcome) of the rows of data dicts; with several
+    dicts, ``idx_batches`` holds one index array per dict for each batch, and the batch is their
+    rows in that order (no full-set copies)."""
+    def make(i, idx):
+        idx = idx if len(parts) > 1 else (idx,)
+        cols = [np.concatenate([p[k][j] for p, j in zip(parts, idx)]).astype(np.float32)
+                for k in ("object", "left", "right", "outcome")]
+        return shard(*cols)
+    return LazyBatches(make, idx_batches)
 
 
 def index_batches(n: int, batch: int, max_steps: int, rng: np.random.Generator) -> list[np.ndarray]:

@@ -135,9 +135,8 @@ def prepare_run_data(run_dir: Path, cfg: Config, source: str, simulate: Simulate
     store = GraspStore(run_dir / "store")
     store.clean_temporary()
     build_grasp_dataset(tsdfs[train_idx], [names[i] for i in train_idx], store, cfg=cfg, seed=t.seed,
-                        n_cut=t.cut_pairs, n_perturbed=t.perturbed_pairs, perturb_peak=t.perturbed_peak,
-                        backend=backend, progress=progress,
-                        executor=executor)
+                        n_cut=t.cut_pairs, n_perturbed=t.perturbed_pairs, backend=backend,
+                        progress=progress, executor=executor)
     extra = np.zeros((0,) + tsdfs.shape[1:], np.float16)
     if t.imprint_objects:
         extra, _ = load_or_make_builtin_range(run_dir / "imprint_objects", t.n_objects, t.imprint_objects,

@@ -27,8 +27,7 @@ log = logging.getLogger(__name__)
 
 # Settings that only change the co-training cycles: runs that differ in nothing else can share one
 # pretraining (``copy_pretraining``), as the paper's ablations do.
-COTRAIN_FIELDS = ("cycles", "objectives", "imprint_anchor", "anchor_target", "cycle_candidates",
-                  "fn_refit_steps", "generator_lr", "warmup_designs",
+COTRAIN_FIELDS = ("cycles", "objectives", "cycle_candidates", "generator_lr", "warmup_designs",
                   "objects_per_cycle", "cotrain_batch_size", "fn_target_loss", "gn_target_loss",
                   "min_epochs", "max_epochs")
 
@@ -169,7 +168,7 @@ def copy_pretraining(run_dir: Path, src: Path, old: dict, new: dict) -> None:
 
     Takes the source's objects, pretraining rows and held-out baselines, its pretrained models
     (``src/pretrained``) and their cycle-0 evaluation; the configs may differ only in
-    ``COTRAIN_FIELDS`` (the objectives of the Table 1 ablations, the imprint anchor, ...).
+    ``COTRAIN_FIELDS`` (the objectives of the Table 1 ablations, the cycles' sizes, ...).
     Everything is staged in a hidden sibling directory and renamed into place at the end.
     """
     differ = [f for f in differing_fields(old["config"], new["config"])

@@ -183,41 +183,25 @@ def gn_fitness_step(cfg: Config, objectives: str | None = None) -> Step:
 
     ``step(state, fitness_variables, objects) -> (state, {"loss", "fitness" [11]})`` with
     loss = -mean sigmoid F over the selected outputs (``objectives``, default cfg.train's).
-
-    With ``cfg.train.imprint_anchor`` > 0 the step takes the objects' imprint fingers too,
-    ``step(state, fitness_variables, objects, imprint_lefts, imprint_rights)``, and adds that weight
-    times the generator's distance to those fingers (its pretraining loss, ``imprint_distance``):
-    a trust region that keeps the designs where the decoder and the fitness
-    net have seen data.  Metrics then also hold "fitness_loss" and "anchor".
     """
     model = generator_module(cfg.net)
     fitness = FitnessNet(cfg.net)
     objectives = objectives or cfg.train.objectives
-    anchor = float(cfg.train.imprint_anchor)
 
-    def loss_fn(params, batch_stats, fit_vars, obj, *imprints):
+    def loss_fn(params, batch_stats, fit_vars, obj):
         variables = {"params": params, "batch_stats": batch_stats}
         zl, zr, stats = _latents(model, variables, obj)
         left, right = model.apply(variables, zl, zr, method=type(model).decode)
         logits = fitness.apply(fit_vars, fitness_input(obj, left, right), train=False)
-        fit_loss = generator_loss(logits, objectives)
         aux = {"fitness": jnp.mean(jax.nn.sigmoid(logits), 0)}
-        loss = fit_loss
-        if anchor:
-            dist = model.apply(variables, zl, zr, *imprints, method=type(model).imprint_distance)
-            loss = fit_loss + anchor * dist
-            aux.update(fitness_loss=fit_loss, anchor=dist)
-        return loss, (stats, aux)
+        return generator_loss(logits, objectives), (stats, aux)
 
     opt = generator_optimizer(cfg)
 
     @functools.partial(jax.jit, donate_argnums=0)
-    def step(state: TrainState, fit_vars, obj, *imprints):
-        if bool(anchor) != (len(imprints) == 2):
-            raise TypeError(f"gn_fitness_step: imprint_anchor={anchor} takes "
-                            f"{'the imprint lefts and rights' if anchor else 'no imprint fingers'}")
+    def step(state: TrainState, fit_vars, obj):
         (loss, (stats, aux)), grads = jax.value_and_grad(loss_fn, has_aux=True)(
-            state.params, state.batch_stats, fit_vars, obj, *imprints)
+            state.params, state.batch_stats, fit_vars, obj)
         new = _apply_grads(opt, state, grads, _merge_stats(state.batch_stats, stats))
         return new, {"loss": loss, **aux}
 

@@ -6,13 +6,13 @@ benchmarks/RESULTS.md). This script measures whether within-object data, made ch
 
     # 1. training data: for each generator (every run's pretrained and final nets) and each run's
     #    objects, K candidates per object (own design + latent perturbations), first grasp only
-    python benchmarks/fitness_ranking.py make --runs R0 R1 R2 --test-run R0 --candidates 16 \\
+    python research/fitness_ranking.py make --runs R0 R1 R2 --test-run R0 --candidates 16 \\
         --noise 0.4 --out D
     #    (--fresh 148 --fresh-seed 8: built-in objects beside the runs' own, coacd'd once and cached)
     # 2. the test: R0's held-out objects and 48 fresh ones, 16 candidates each, all 11 trials
-    python benchmarks/fitness_ranking.py test --test-run R0 --fresh 48 --seed 7 --out D
+    python research/fitness_ranking.py test --test-run R0 --fresh 48 --seed 7 --out D
     # 3. a net trained on D (grasp BCE + a within-object pairwise loss), scored on the test
-    python benchmarks/fitness_ranking.py fit --data D --model gaps --steps 3000 --rows 16000
+    python research/fitness_ranking.py fit --data D --model gaps --steps 3000 --rows 16000
 
 The first grasp decides most of what differs between one object's designs (a failed grasp fails
 all 11 trials; 76% of the within-object variance of trials passed on the test below), and it costs
@@ -40,9 +40,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,14 +1,14 @@
 """Our grasp protocol against the original's, trial by trial, on the same triples and geometry.
 
-    python benchmarks/protocol_fidelity.py                          # 64 builtin objects x 5 kinds
-    python benchmarks/protocol_fidelity.py --objects DIR --n-objects 15 --json fidelity.json
-    python benchmarks/protocol_fidelity.py --n-objects 2 --config tiny --kinds imprint  # smoke
-    python benchmarks/protocol_fidelity.py --kinds imprint wsg50-fmf --ablations --render both.png
+    python research/protocol_fidelity.py                          # 64 builtin objects x 5 kinds
+    python research/protocol_fidelity.py --objects DIR --n-objects 15 --json fidelity.json
+    python research/protocol_fidelity.py --n-objects 2 --config tiny --kinds imprint  # smoke
+    python research/protocol_fidelity.py --kinds imprint wsg50-fmf --ablations --render both.png
 
 Three simulators score every triple: our MuJoCo protocol under the default ``fast`` preset and
-under ``reference`` (``sim.evaluate``), and the PyBullet original (``benchmarks/
-pybullet_original.py``: the original Fit2Form script, its departures listed in its docstring;
-needs the ``pybullet`` extra), all on the same collision geometry: coacd object pieces (cached)
+under ``reference`` (``sim.evaluate``), and the PyBullet original (``f2f_jax.bench.pybullet_peer``:
+the original Fit2Form script, its departures listed in its docstring; needs the ``pybullet``
+extra, run by ``bench.pybullet_runs.run_peer``), all on the same collision geometry: coacd object pieces (cached)
 and height-map finger hulls.  The peer runs in ``--workers`` processes, one PyBullet client each.
 
 Triples, per object (``--n-objects`` builtin objects of ``--seed``, or the first readable meshes of
@@ -43,14 +43,13 @@ import json
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
 
 from f2f_jax import config, sim
 from f2f_jax.bench.agreement import agreement_stats, load_objects, rates, vector_text
+from f2f_jax.bench.pybullet_runs import run_peer
 from f2f_jax.config import TRIAL_NAMES
 from f2f_jax.dataset.pretraining import perturbed_finger, pretraining_pairs
 from f2f_jax.geometry import wsg50_fingers
@@ -92,12 +91,13 @@ def make_triples(tsdfs: np.ndarray, names: list[str], kinds, seed: int, cfg) -> 
 
 # One difference between the two protocols at a time, on one side: (side, label, changes).
 # "ours" changes are SimConfig fields of the ``fast`` preset; "pybullet" changes are
-# ``pybullet_original.OriginalProtocol`` fields (the peer's departures from the original are
-# switches there) or, where no such field exists, SimConfig fields the peer reads.
+# ``bench.pybullet_peer.OriginalProtocol`` fields (the peer's departures from the original are
+# switches there) or, where no such field exists, SimConfig fields the peer reads as "sim.FIELD"
+# (``bench.pybullet_runs.SIM_PREFIX``).  Two arms of our side ran at commit dd4f091 and are gone
+# with their SimConfig fields (research/README.md): fingers passing through each other
+# (finger_collisions off) and the push through the world origin (push_point="origin").
 ABLATIONS: tuple[tuple[str, str, dict], ...] = (
     ("ours", "lift as hard as the original's (lift_time 0.25 s: 11 m/s^2 peak)", dict(lift_time=0.25)),
-    ("ours", "fingers pass through each other (finger_collisions off)", dict(finger_collisions=False)),
-    ("ours", "push through the world origin (the original's call)", dict(push_point="origin")),
     ("ours", "jaws close from 3 cm open (open_margin 0.03)", dict(open_margin=0.03)),
     ("ours", "pyramidal friction cone", dict(cone="pyramidal")),
     ("ours", "no torsional friction (condim 3)", dict(condim=3)),
@@ -121,43 +121,6 @@ ABLATIONS: tuple[tuple[str, str, dict], ...] = (
      dict(finger_rolling_friction=0.0)),
     ("pybullet", "Bullet's solver at 200 iterations (numSolverIterations)", dict(solver_iterations=200)),
 )
-
-
-# A PyBullet-side ablation key with this prefix changes the SimConfig both protocols read (the
-# object's friction, its mass); any other key is an ``OriginalProtocol`` field.  Some names
-# exist in both (push_point, grip_force, timestep), so the prefix, not a lookup, decides.
-SIM_PREFIX = "sim."
-
-
-def _peer_chunk(args):
-    """Worker process: one PyBullet client over a chunk of (object, left, right) hulls."""
-    objects, lefts, rights, cfg, changes = args
-    import dataclasses
-
-    from f2f_jax.bench import pybullet_runs as peer
-
-    protocol = dataclasses.replace(peer.PROTOCOL, **{k: v for k, v in changes.items()
-                                                     if not k.startswith(SIM_PREFIX)})
-    sim_changes = {k[len(SIM_PREFIX):]: v for k, v in changes.items() if k.startswith(SIM_PREFIX)}
-    if sim_changes:
-        cfg = cfg.replace(sim=dataclasses.replace(cfg.sim, **sim_changes))
-    out, stats = peer.evaluate_original(objects, lefts, rights, cfg=cfg, protocol=protocol)
-    return out, int(stats["steps"])
-
-
-def run_peer(objects, lefts, rights, cfg, workers: int, changes: dict | None = None):
-    """The PyBullet original on every triple, in ``workers`` spawned processes: ([N, 11], steps).
-
-    changes: ``OriginalProtocol`` fields to change, for an ablation, and ``SimConfig`` fields
-        (the settings both protocols share: masses, friction) as "sim.FIELD".
-    """
-    n = len(objects)
-    bounds = np.linspace(0, n, max(1, min(workers, n)) + 1).astype(int)
-    chunks = [(objects[a:b], lefts[a:b], rights[a:b], cfg, dict(changes or {}))
-              for a, b in zip(bounds[:-1], bounds[1:])]
-    with ProcessPoolExecutor(len(chunks), mp_context=get_context("spawn")) as pool:
-        parts = list(pool.map(_peer_chunk, chunks))
-    return np.concatenate([p[0] for p in parts]), sum(p[1] for p in parts)
 
 
 def render_both(triple: dict, object_hulls, left_hulls, right_hulls, cfg, path: Path) -> None:
@@ -250,7 +213,7 @@ def main(argv=None) -> int:
         p.error("--n-objects and --workers must be >= 1")
     if args.objects is not None and not args.objects.is_dir():
         p.error(f"--objects {args.objects}: no such directory")
-    if importlib.util.find_spec("pybullet") is None:  # the workers import pybullet_original
+    if importlib.util.find_spec("pybullet") is None:  # the workers import pybullet
         p.error("the PyBullet original needs the pybullet extra: pip install -e '.[pybullet]'")
     base = config.get(args.config)
     presets = {name: config.with_sim_preset(base, name) for name in ("fast", "reference")}

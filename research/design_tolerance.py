@@ -1,11 +1,11 @@
 """Does a verified design survive printing? Picks by the exact outcome against picks by the mean
 over moved copies (``design(..., tolerance=...)``), both re-simulated on fresh moved copies.
 
-    python benchmarks/design_tolerance.py --run-dir runs/cotrain --fresh 48 --seed 7 \\
+    python research/design_tolerance.py --run-dir runs/cotrain --fresh 48 --seed 7 \\
         --candidates 16 --tolerance 0.3 --copies 3 --fresh-copies 4 --json OUT.json
 
-One trial of a design turns on tenths of a millimetre of finger (``sim_retest.py --perturb
-heights``), so the verified design pool's pick (the best of K + 3 simulated candidates) reports
+One trial of a design turns on tenths of a millimetre of finger (``research/sim_retest.py
+--perturb heights``), so the verified design pool's pick (the best of K + 3 simulated candidates) reports
 more trials than its printed fingers will pass: part of its lead is luck of the draw. Here, on the
 run's held-out objects (and ``--fresh N`` new built-in objects drawn with ``--seed``), the pool of
 ``design(candidates=K, verify=True)`` (the generator's K candidates drawn with ``--key``, then the

@@ -6,7 +6,7 @@ fingers, so **an imprint encoded and decoded again is the best that pretraining 
 and co-training starts from there. This script simulates, on a run's held-out objects and fresh
 ones, what the simulator thinks of each step of that chain:
 
-    python benchmarks/finger_fidelity.py --run-dir runs/cotrain --fresh 48 --seed 7 --json out.json
+    python research/finger_fidelity.py --run-dir runs/cotrain --fresh 48 --seed 7 --json out.json
 
 Rows (all post-processed as designs are, all 11 trials): ``imprint`` (``geometry.imprint_fingers``),
 ``imprint through the auto-encoder`` (the run's encoder means, clipped to the decoder's [-1, 1],
@@ -25,16 +25,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import textwrap
 import time
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
-
-if __package__ in (None, ""):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def height_gap_voxels(a: np.ndarray, b: np.ndarray, cfg=None) -> float:

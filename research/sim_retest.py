@@ -1,7 +1,7 @@
 """Test-retest of simulated outcomes: how much of one trial's 0/1 is the design, how much the path.
 
-    python benchmarks/sim_retest.py --n 64                                  # builtin triples
-    python benchmarks/sim_retest.py --run-dir runs/cotrain --candidates 8   # a run's designs
+    python research/sim_retest.py --n 64                                  # builtin triples
+    python research/sim_retest.py --run-dir runs/cotrain --candidates 8   # a run's designs
 
 The same (object, left, right) triples are simulated twice with plain MuJoCo: once as configured,
 once with a physically negligible change (``--perturb``: object mass x1.01, finger friction x1.01,
@@ -9,16 +9,17 @@ a timestep 5% shorter, or ``pieces``: the objects' coacd pieces made again with 
 as good a decomposition as the first, to ~25 s of coacd per object and core, or ``heights``: each
 finger's height map, which is all of a finger the simulator meshes, moved by a smooth random field
 of ``--height-sd`` voxels, one rerun per value; several may be given, each a rerun).  ``pieces``
-is the floor that any other object geometry is judged against (``sim_agreement.py``): no
+is the floor that any other object geometry is judged against (``benchmarks/sim_agreement.py``): no
 decomposition can be asked to agree with coacd's more often than coacd's agrees with itself.  A
-design whose outcome flips under a 1% change in mass is decided by the solver's path, not by its shape: no fitness net
-can learn such a flip, and no backend (MJX included, ``mjx_agreement.py``) can be asked to agree
-with MuJoCo more often than MuJoCo agrees with itself.
+design whose outcome flips under a 1% change in mass is decided by the solver's path, not by its
+shape: no fitness net can learn such a flip, and no backend (MJX included, ``benchmarks/
+sim_agreement.py --backends mjx mujoco``) can be asked to agree with MuJoCo more often than
+MuJoCo agrees with itself.
 
 Two sources of triples:
 
 * ``--n N``: builtin objects with the pretraining dataset's pairs (imprint, WSG50, one cut pair),
-  as ``mjx_agreement.py`` makes them (same seed, same triples).
+  as ``bench.agreement.builtin_triples`` makes them (same seed, same triples).
 * ``--run-dir RUN --candidates K``: ``f2f_jax.design``'s K candidates (the generator's own output
   and K - 1 latent perturbations) on the run's held-out objects.  Also printed: the within-object
   test-retest Spearman of trials passed, and how the best candidate of the first run scores in

@@ -1,7 +1,7 @@
 """Pack Python packages for a machine with no network, in parts of at most N MiB each.
 
-    python benchmarks/gpu_pack.py                 # -> .gpu_site/1, .gpu_site/2 and the commands
-    python benchmarks/gpu_pack.py --packages "mujoco==3.17.0 trimesh==5.2.0" --python 3.12
+    python tools/gpu_pack.py                 # -> .gpu_site/1, .gpu_site/2 and the commands
+    python tools/gpu_pack.py --packages "mujoco==3.17.0 trimesh==5.2.0" --python 3.12
 
 For a GPU machine that has Python with JAX (and scipy, flax, ...) but no network and a limit on
 the files sent with each command: the rest of what the project imports there is larger than such

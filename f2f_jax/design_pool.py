@@ -1,0 +1,148 @@
+"""The candidate pool of ``design``: the imprint variants, the simulated outcomes of candidates
+(exact and as moved, printed copies) and their ranking.  Module-level steps, so that tests and
+benchmarks can time or replace each one."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from f2f_jax.config import GeometryConfig
+from f2f_jax.geometry import imprint_fingers
+from f2f_jax.nets.inference import HEIGHT_NOISE_GRID, perturbed_heights
+
+# The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
+# Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
+IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (
+    ("imprint", 0.0), ("imprint, 1 voxel looser", 1.0), ("imprint, 1 voxel tighter", -1.0))
+GENERATOR = "generator"
+GENERATOR_NOISE = "generator + latent noise"
+GENERATOR_HEIGHT_NOISE = "generator + height noise"  # a height-map generator's candidates
+
+
+def imprint_candidates(objects: np.ndarray, geometry: GeometryConfig | None = None
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The imprint pairs of ``IMPRINT_VARIANTS``: objects [B, R, R, R] -> lefts, rights
+    [B, V, R, R, R] float32 and made [B, V] bool.
+
+    A variant grows the object by ``voxels`` before imprinting (its TSDF, in units of the
+    truncation distance, lowered by voxels x voxel size / truncation).  Where that leaves no
+    volume to imprint (a box that fills the cube, grown by a voxel, has no voxel outside; a thin
+    wall, shrunk by one, may vanish), the variant is not made: its fingers are empty volumes and
+    ``made`` is False there, so the pool leaves it out.  The plain imprint (0 voxels) is made for
+    every object that ``check_tsdf`` accepts."""
+    g = geometry or GeometryConfig()
+    step = g.voxel_size / g.truncation
+    objects = np.asarray(objects, np.float32)
+    b, v, r = len(objects), len(IMPRINT_VARIANTS), g.resolution
+    lefts = np.ones((b, v, r, r, r), np.float32)
+    rights = np.ones((b, v, r, r, r), np.float32)
+    made = np.zeros((b, v), bool)
+    for i, obj in enumerate(objects):
+        for j, (_, voxels) in enumerate(IMPRINT_VARIANTS):
+            grown = np.clip(obj - voxels * step, -1.0, 1.0).astype(np.float32)
+            solid = grown < 0
+            if voxels != 0 and (solid.all() or not solid.any()):
+                continue  # nothing left outside (or inside) to imprint
+            lefts[i, j], rights[i, j] = imprint_fingers(grown, g)
+            made[i, j] = True
+    return lefts, rights, made
+
+
+def left_out_reason(origin: str) -> str:
+    """Why an imprint variant could not be made, in a user's terms."""
+    voxels = dict(IMPRINT_VARIANTS).get(origin, 0.0)
+    if voxels > 0:
+        return "the object grown by a voxel fills the whole design cube (nothing left to imprint)"
+    return "the object shrunk by a voxel has no solid left (its walls are thinner than 2 voxels)"
+
+
+def tolerance_voxels(tolerance_mm: float, geometry: GeometryConfig) -> float:
+    """A printer's tolerance in millimetres -> the moving field's standard deviation in voxels."""
+    return tolerance_mm / (1000.0 * geometry.voxel_size)
+
+
+def printed_copies(lefts: np.ndarray, rights: np.ndarray, tolerance_mm: float,
+                   geometry: GeometryConfig, copies: int, seed) -> tuple[np.ndarray, np.ndarray]:
+    """Fingers [N, R, R, R] -> ``copies`` moved copies of them, [copies x N, R, R, R] copy-major
+    (``perturbed_heights`` with fields of ``tolerance_mm``).  The fields depend only on ``seed``
+    (any numpy seed), the copy, the side and the object's index: called with the same seed, the
+    designs of every row of a table on the same N objects are moved alike (paired)."""
+    n = len(lefts)
+    grids = np.random.default_rng(seed).standard_normal(
+        (copies, 2, n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
+    sd, tr = tolerance_voxels(tolerance_mm, geometry), geometry.truncation_voxels
+    return (np.concatenate([perturbed_heights(lefts, sd, tr, grid=grids[c, 0]) for c in range(copies)]),
+            np.concatenate([perturbed_heights(rights, sd, tr, grid=grids[c, 1]) for c in range(copies)]))
+
+
+def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,
+                    simulated: np.ndarray | None = None, moved: np.ndarray | None = None, *,
+                    made: np.ndarray | None = None) -> np.ndarray:
+    """Candidate order per object, best first.
+
+    feasible: [B, K] bool; predicted: [B, K, 11] probabilities; simulated: [B, K, 11] 0/1 or None;
+    moved: [C, B, K, 11] 0/1 outcomes of C moved copies of each candidate, or None; made: [B, K]
+    bool, False for a candidate that could not be made (``imprint_candidates``), or None (all).
+    Keys, most important first: made, feasible, simulated trials passed (when given; averaged
+    with the moved copies' when those are given), mean predicted probability, lower candidate
+    index.  Returns [B, K] int indices.
+    """
+    feasible = np.asarray(feasible, bool)
+    b, k = feasible.shape
+    made = np.ones((b, k), bool) if made is None else np.asarray(made, bool)
+    pred = np.asarray(predicted, np.float64).mean(axis=-1)
+    sim = (np.zeros((b, k)) if simulated is None
+           else np.asarray(simulated, np.float64).sum(axis=-1))
+    if moved is not None:
+        if simulated is None:
+            raise ValueError("moved copies are ranked with the exact pairs' simulated outcomes")
+        moved = np.asarray(moved, np.float64).sum(axis=-1)
+        sim = (sim + moved.sum(axis=0)) / (1 + len(moved))
+    index = np.broadcast_to(np.arange(k), (b, k))
+    # np.lexsort sorts ascending by the last key first
+    return np.lexsort((index, -pred, -sim, ~feasible, ~made), axis=-1)
+
+
+def simulate_candidates(nets, objects, lefts, rights, feasible, backend, progress=None,
+                        object_hulls=None, executor: str = "threads") -> np.ndarray:
+    """Simulated outcomes [B, K, T] uint8 (T = ``nets.config.sim.n_trials``, 11 for the whole
+    protocol): the feasible candidates in one evaluate call, zeros for the rest (an infeasible
+    finger scores all 0 by the protocol).  object_hulls: optional precomputed hulls, one per object."""
+    from f2f_jax.sim import evaluate  # MuJoCo only when verifying: `import f2f_jax` stays light
+
+    b, k = feasible.shape
+    out = np.zeros((b, k, nets.config.sim.n_trials), np.uint8)
+    ib, ik = np.nonzero(feasible)
+    if len(ib):
+        hulls = None if object_hulls is None else [object_hulls[i] for i in ib]
+        out[ib, ik] = evaluate(objects[ib], lefts[ib, ik], rights[ib, ik], backend=backend,
+                               cfg=nets.config, progress=progress, object_hulls=hulls,
+                               executor=executor)
+    return out
+
+
+def simulate_moved(nets, objects, lefts, rights, feasible, backend, sd_voxels: float, copies: int,
+                   rng: np.random.Generator, progress=None, object_hulls=None,
+                   executor: str = "threads", shared: bool = False) -> np.ndarray:
+    """Simulated outcomes [C, B, K, T] uint8 of C = ``copies`` copies of the feasible candidates,
+    each finger's height map moved by a smooth field of ``sd_voxels``
+    (``nets.inference.perturbed_heights``, drawn from ``rng``); zeros for infeasible candidates.
+    shared=False: every finger its own field; True: one field per copy, object and side, the same
+    for all of that object's candidates (common random numbers: candidates are compared under the
+    same printing error).  One ``simulate_candidates`` call per copy, so memory holds one copy at
+    a time."""
+    ib, ik = np.nonzero(feasible)
+    tr = nets.config.geometry.truncation_voxels
+    out = []
+    for _ in range(copies):
+        moved_l, moved_r = lefts.copy(), rights.copy()
+        if shared:
+            grids = rng.standard_normal((len(objects), 2, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
+            moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, grid=grids[ib, 0])
+            moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, grid=grids[ib, 1])
+        else:
+            moved_l[ib, ik] = perturbed_heights(lefts[ib, ik], sd_voxels, tr, rng)
+            moved_r[ib, ik] = perturbed_heights(rights[ib, ik], sd_voxels, tr, rng)
+        out.append(simulate_candidates(nets, objects, moved_l, moved_r, feasible, backend, progress,
+                                       object_hulls, executor=executor))
+    return np.stack(out)
