@@ -154,7 +154,7 @@ def main(argv=None) -> dict:
     fig = finger_figures(fingers, g)
     out["finger_hulls"] = fig
     rows.append((f"finger_hulls K={g.finger_hulls} V={g.hull_vertices}", _ms(fig["time"]),
-                 f"{len(fingers)} imprint fingers"))
+                 f"{len(fingers)} imprint fingers, all distinct (nothing remembered)"))
     rows.append(("  fit: IoU mean / min", f"{fig['iou_mean']:.3f} / {fig['iou_min']:.3f}", ""))
     rows.append(("  fit: intrusion mean / max", f"{fig['intrusion_mm_mean']:.2f} / "
                  f"{fig['intrusion_mm_max']:.2f} mm", "into the finger's empty space"))

@@ -13,18 +13,27 @@ that faces the mount (an undercut) is filled down to the mount; imprint fingers 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import heapq
+import math
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import ConvexHull
 
 from f2f_jax.config import GeometryConfig, geometry_config
 from f2f_jax.errors import DecompositionError
-from f2f_jax.geometry.hulls import Hulls, clip_halfspace, pack_pieces, reduce_vertices
+from f2f_jax.geometry.hulls import (
+    Hulls,
+    QuickHull,
+    clip_halfspace,
+    pack_pieces,
+    reduce_hull,
+    reduce_vertices,
+)
+from f2f_jax.geometry.tile_cuts import best_cut
 from f2f_jax.geometry.tsdf import check_tsdf
 
 # Tiling measures intrusion exactly up to this many voxels from the solid (a windowed 2.5D
@@ -39,12 +48,7 @@ _BISECTIONS = 14  # balance offset to ~(height range) / 2^14, well under a micro
 _INTRUSION_WEIGHT = 0.8
 _EXACT = 1e-6  # m; tile errors below this are rounding (float32 facet planes), not misfit
 _MIN_HEIGHT = 1e-4  # m; a clipped piece must reach this far from the mount, else it stays unclipped
-# Directions of the cut lines in the (iu, iv) plane.  Steps in a turned object's imprint run at
-# any angle; cuts along them separate a wall from the floor beside it in one piece each.
-_CUT_ANGLES_DEG = (0.0, 45.0, 90.0, 135.0)
-_CUT_COS = np.cos(np.radians(_CUT_ANGLES_DEG))[:, None]
-_CUT_SIN = np.sin(np.radians(_CUT_ANGLES_DEG))[:, None]
-_MIN_SIDE = 0.5  # each side of a cut keeps >= 0.5 sqrt(n) of the tile's n columns
+_max, _min = np.maximum.reduce, np.minimum.reduce  # np.max and np.min, without their wrappers
 _REMEMBERED = 256  # distinct fingers whose pieces ``remembered_finger_hulls`` keeps (~7 KB each)
 
 
@@ -86,36 +90,61 @@ class _HeightField:
         self.h_flat = height.ravel()
         r = height.shape[0]
         self.r = r
-        vox = g.voxel_size
-        iu, iv = np.indices((r, r))
-        self.iu, self.iv = iu.ravel(), iv.ravel()
-        rr = _REACH_VOXELS
-        du, dv = np.meshgrid(np.arange(-rr, rr + 1), np.arange(-rr, rr + 1), indexing="ij")
-        du, dv = du.ravel(), dv.ravel()
-        gap = np.hypot(np.maximum(np.abs(du) - 0.5, 0), np.maximum(np.abs(dv) - 0.5, 0))
-        keep = gap <= rr
-        du, dv, gap = du[keep], dv[keep], gap[keep] * vox
-        nu, nv = iu[..., None] + du, iv[..., None] + dv  # [R, R, O]
-        inside = (nu >= 0) & (nu < r) & (nv >= 0) & (nv < r)
-        nh = np.where(inside, height[np.clip(nu, 0, r - 1), np.clip(nv, 0, r - 1)], 0.0)
-        solid = inside & (nh > 0)
-        self.reach = rr * vox
-        # squared lateral gaps, infinite towards columns without solid; the neighbours' heights
-        self.gap2 = np.where(solid, gap**2, np.inf).reshape(r * r, -1)
-        self.nh = nh.reshape(r * r, -1)
-        # column centres (u, v) in metres
-        c = (np.arange(r) + 0.5) * vox - g.cube_size / 2
-        self.uv = np.stack(np.meshgrid(c, c, indexing="ij"), -1).reshape(-1, 2)
+        lay = _layout(r, g.voxel_size, g.cube_size)
+        self.iu, self.iv, self.even, self.uv, self.corners = (
+            lay.iu, lay.iv, lay.even, lay.uv, lay.corners)
+        self.reach = _REACH_VOXELS * g.voxel_size
+        # the neighbours' heights (0 off the map) and squared lateral gaps to them, infinite
+        # towards columns without solid: [R^2, offsets]
+        padded = np.zeros((r + 2 * _REACH_VOXELS,) * 2)
+        padded[_REACH_VOXELS:-_REACH_VOXELS, _REACH_VOXELS:-_REACH_VOXELS] = height
+        self.nh = padded.ravel()[lay.neighbours]
+        self.gap2 = np.where(self.nh > 0, lay.gap2, np.inf)
 
     def distance(self, cols: np.ndarray, w: np.ndarray) -> np.ndarray:
         """[Q] metres from (centre of column cols[q], height w[q]) to the solid.
 
         Exact up to the reach; beyond it the height above the column's own solid (an upper
         bound, never below the reach), so deep errors still rank by size."""
-        rise = np.maximum(w[:, None] - self.nh[cols], 0.0)
-        d = np.sqrt(np.min(self.gap2[cols] + rise**2, axis=1))
+        rise = w[:, None] - self.nh[cols]
+        np.maximum(rise, 0.0, out=rise)
+        rise *= rise
+        rise += self.gap2[cols]
+        d = np.sqrt(_min(rise, axis=1))
         own = np.maximum(w - self.h_flat[cols], 0.0)
         return np.where(d <= self.reach, d, np.maximum(own, self.reach))
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What every height map of one resolution and voxel shares (``_layout``)."""
+
+    iu: np.ndarray  # [R^2] column rows and columns
+    iv: np.ndarray
+    even: np.ndarray  # [R^2] bool: both even (the columns big tiles are judged on)
+    uv: np.ndarray  # [R^2, 2] column centres (u, v), metres
+    corners: np.ndarray  # [R + 1] footprint corner coordinates, metres
+    neighbours: np.ndarray  # [R^2, O] flat index of each column's neighbours in the padded map
+    gap2: np.ndarray  # [O] squared lateral gap to each neighbour (m^2)
+
+
+@functools.lru_cache(maxsize=8)
+def _layout(r: int, vox: float, cube: float) -> _Layout:
+    iu, iv = np.indices((r, r))
+    rr = _REACH_VOXELS
+    du, dv = np.meshgrid(np.arange(-rr, rr + 1), np.arange(-rr, rr + 1), indexing="ij")
+    du, dv = du.ravel(), dv.ravel()
+    gap = np.hypot(np.maximum(np.abs(du) - 0.5, 0), np.maximum(np.abs(dv) - 0.5, 0))
+    keep = gap <= rr
+    du, dv, gap = du[keep], dv[keep], gap[keep] * vox
+    neighbours = ((iu[..., None] + du + rr) * (r + 2 * rr) + iv[..., None] + dv + rr)
+    c = (np.arange(r) + 0.5) * vox - cube / 2
+    lay = _Layout(iu.ravel(), iv.ravel(), ((iu % 2 == 0) & (iv % 2 == 0)).ravel(),
+                  np.stack(np.meshgrid(c, c, indexing="ij"), -1).reshape(-1, 2),
+                  np.arange(r + 1) * vox - cube / 2, neighbours.reshape(r * r, -1), gap**2)
+    for a in vars(lay).values():
+        a.setflags(write=False)
+    return lay
 
 
 def _tile_points(field: _HeightField, members: np.ndarray):
@@ -123,31 +152,37 @@ def _tile_points(field: _HeightField, members: np.ndarray):
     their heights and at w = 0 (a corner shared by columns of different height takes the
     highest).  Big tiles use every s-th corner (s chosen to keep about ``_TILE_POINTS`` corners),
     each taking the highest of the corners nearest to it, so hulls and their facet counts stay
-    small; the corners of the tile's bounding box are always kept.  Returns [P, 3] float64, or
-    None for a tile without solid."""
-    g = field.g
+    small; the corners of the tile's bounding box are always kept.  members: sorted.  Returns
+    [P, 3] float64, or None for a tile without solid."""
     h = field.h_flat[members]
-    if not np.any(h > 0):
+    solid = h > 0
+    if not solid.any():
         return None
     iu, iv = field.iu[members], field.iv[members]
-    i0, j0 = iu.min(), iv.min()
-    sub = np.full((iu.max() - i0 + 1, iv.max() - j0 + 1), -np.inf)
-    sub[iu - i0, iv - j0] = np.where(h > 0, h, -np.inf)
-    hp = np.pad(sub, 1, constant_values=-np.inf)
-    corner = np.maximum(np.maximum(hp[:-1, :-1], hp[1:, :-1]), np.maximum(hp[:-1, 1:], hp[1:, 1:]))
-    ku, kv = np.arange(corner.shape[0]), np.arange(corner.shape[1])
-    stride = int(np.ceil(np.sqrt(np.count_nonzero(corner > -np.inf) / _TILE_POINTS)))
+    i0, j0 = int(iu[0]), int(_min(iv))  # members are sorted, so by iu first
+    hp = np.full((int(iu[-1]) - i0 + 3, int(_max(iv)) - j0 + 3), -np.inf)
+    hp[iu - (i0 - 1), iv - (j0 - 1)] = np.where(solid, h, -np.inf)
+    rows = np.maximum(hp[:-1], hp[1:])
+    corner = np.maximum(rows[:, :-1], rows[:, 1:])
+    real = corner > -np.inf
+    stride = math.ceil(math.sqrt(np.count_nonzero(real) / _TILE_POINTS))
     if stride > 1:
-        ku, starts_u = _coarse_lattice(len(ku), stride)
-        kv, starts_v = _coarse_lattice(len(kv), stride)
+        ku, starts_u = _coarse_lattice(corner.shape[0], stride)
+        kv, starts_v = _coarse_lattice(corner.shape[1], stride)
         corner = np.maximum.reduceat(corner, starts_u, axis=0)
         corner = np.maximum.reduceat(corner, starts_v, axis=1)
-    ci, cj = np.nonzero(corner > -np.inf)
-    u = (i0 + ku[ci]) * g.voxel_size - g.cube_size / 2
-    v = (j0 + kv[cj]) * g.voxel_size - g.cube_size / 2
-    top = np.stack([u, v, corner[ci, cj]], 1)
-    bottom = np.stack([u, v, np.zeros_like(u)], 1)
-    return np.concatenate([top, bottom])
+        real = corner > -np.inf
+        ci, cj = np.nonzero(real)
+        ci, cj = ku[ci], kv[cj]
+    else:
+        ci, cj = np.nonzero(real)
+    m = len(ci)
+    out = np.empty((2, m, 3))
+    out[:, :, 0] = field.corners[i0 + ci]
+    out[:, :, 1] = field.corners[j0 + cj]
+    out[0, :, 2] = corner[real]
+    out[1, :, 2] = 0.0
+    return out.reshape(2 * m, 3)
 
 
 def _coarse_lattice(n: int, stride: int) -> tuple[np.ndarray, np.ndarray]:
@@ -163,25 +198,42 @@ def _hull_top(eq: np.ndarray, uv: np.ndarray) -> np.ndarray:
     line misses the hull.  eq: [F, 4] ConvexHull equations (n . x + d <= 0 inside); the hull
     lies on w >= 0 with its bottom face on w = 0 (a tile's piece)."""
     nw = eq[:, 2]
-    up, side = nw > 1e-9, np.abs(nw) <= 1e-9
+    up = nw > 1e-9
+    e, n = eq[up], nw[up]
     # each upper facet as the plane w = a + b u + c v; float32 halves the memory traffic of the
     # [Q, F] products, still micrometre-exact at these sizes
-    a, b, c = (-eq[up, 3] / nw[up], -eq[up, 0] / nw[up], -eq[up, 1] / nw[up])
-    u, v = uv[:, :1].astype(np.float32), uv[:, 1:].astype(np.float32)
-    top = np.min(a.astype(np.float32) + u * b.astype(np.float32) + v * c.astype(np.float32),
-                 axis=1).astype(np.float64)
-    if side.any():  # vertical facets bound the footprint
-        outside = np.any(eq[side, 3] + uv[:, :1] * eq[side, 0] + uv[:, 1:] * eq[side, 1] > 1e-12,
-                         axis=1)
-        top = np.where(outside, -np.inf, top)
+    a, b, c = ((-e[:, k] / n).astype(np.float32) for k in (3, 0, 1))
+    uv32 = uv.astype(np.float32)
+    plane = uv32[:, :1] * b
+    plane += a
+    plane += uv32[:, 1:] * c
+    top = _min(plane, axis=1).astype(np.float64)
+    side = np.abs(nw) <= 1e-9
+    if len(e) < len(eq) and side.any():  # vertical facets bound the footprint
+        s = eq[side]
+        outside = np.any(s[:, 3] + uv[:, :1] * s[:, 0] + uv[:, 1:] * s[:, 1] > 1e-12, axis=1)
+        top[outside] = -np.inf
     return top
 
 
 def _fit_plane(uv: np.ndarray, h: np.ndarray) -> np.ndarray:
     """Least-squares plane h ~ c0 + c1 u + c2 v; a tiny ridge keeps one-line tiles flat."""
-    a = np.c_[np.ones(len(uv)), uv]
-    gram = np.einsum("ni,nj->ij", a, a) + np.diag([0.0, 1e-9, 1e-9])
-    return np.linalg.solve(gram, np.einsum("ni,n->i", a, h))
+    a = np.empty((len(uv), 3))
+    a[:, 0] = 1.0
+    a[:, 1:] = uv
+    gram = np.einsum("ni,nj->ij", a, a)
+    gram += _PLANE_RIDGE
+    return _solve(gram, np.einsum("ni,n->i", a, h))
+
+
+_PLANE_RIDGE = np.diag([0.0, 1e-9, 1e-9])
+# np.linalg.solve's kernel for one right-hand side, without its per-call checks (the ridge keeps
+# the gram positive definite)
+_solve1 = getattr(getattr(np.linalg, "_umath_linalg", None), "solve1", None)
+
+
+def _solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.linalg.solve(a, b) if _solve1 is None else _solve1(a, b, signature="dd->d")
 
 
 def _balanced_offset(top: np.ndarray, plane: np.ndarray, h: np.ndarray) -> float:
@@ -191,15 +243,18 @@ def _balanced_offset(top: np.ndarray, plane: np.ndarray, h: np.ndarray) -> float
 
     Both are monotone in o, so bisection finds the balance; returns +inf when clipping cannot
     lower the worst error (the hull already fits: a ridge or a flat face)."""
-    excess_full = float(np.max(top - h))
+    excess_full = float(_max(top - h))
     if excess_full <= 1e-6:
         return np.inf
-    lo = float(np.min(h - plane)) - excess_full
-    hi = float(np.max(top - plane))
+    lo = float(_min(h - plane)) - excess_full
+    hi = float(_max(top - plane))
+    excess = np.empty_like(top)
     for _ in range(_BISECTIONS):
         mid = 0.5 * (lo + hi)
-        clipped = np.minimum(top, plane + mid)
-        if np.max(clipped - h) > _INTRUSION_WEIGHT * np.max(h - clipped):
+        np.add(plane, mid, out=excess)
+        np.minimum(top, excess, out=excess)
+        excess -= h  # its negation is the shortfall
+        if _max(excess) > _INTRUSION_WEIGHT * -_min(excess):
             hi = mid
         else:
             lo = mid
@@ -212,6 +267,19 @@ class _Tile:
     points: np.ndarray | None  # the piece's points, None when the tile has no solid
     error: float  # worst surface error of the piece (m): intrusion, or weighted shortfall
     hull_points: np.ndarray | None = None  # the unclipped hull's points, where clipped
+    hull: QuickHull | None = None  # the hull of the unclipped points, where made
+
+    def vertices(self, max_vertices: int) -> np.ndarray:
+        """The piece's vertices (``reduce_vertices`` of its points), the unclipped hull's when a
+        clip left a sliver."""
+        if self.hull is not None and self.hull_points is None:
+            return reduce_hull(self.points[self.hull.vertices], max_vertices)[0]
+        try:
+            return reduce_vertices(self.points, max_vertices)
+        except DecompositionError:
+            if self.hull_points is None:
+                raise
+            return reduce_hull(self.hull_points[self.hull.vertices], max_vertices)[0]
 
 
 def _make_tile(field: _HeightField, members: np.ndarray, cover: bool) -> _Tile:
@@ -227,12 +295,12 @@ def _make_tile(field: _HeightField, members: np.ndarray, cover: bool) -> _Tile:
         return _Tile(members, None, 0.0)
     if len(members) == 1:
         return _Tile(members, pts, 0.0)  # one column: its piece is exact
-    hull = ConvexHull(pts)
+    hull = QuickHull(pts)
     cols = members
     if len(members) > _JUDGE_COLUMNS:
         # big tiles are judged on every other column: they get split anyway, and the
         # [columns, facets] products dominate the cost
-        cols = members[(field.iu[members] % 2 == 0) & (field.iv[members] % 2 == 0)]
+        cols = members[field.even[members]]
     uv = field.uv[cols]
     top = _hull_top(hull.equations, uv)
     h = field.h_flat[cols]
@@ -243,101 +311,21 @@ def _make_tile(field: _HeightField, members: np.ndarray, cover: bool) -> _Tile:
         coef = _fit_plane(uv[solid], h[solid])
         plane = coef[0] + uv[:, 0] * coef[1] + uv[:, 1] * coef[2]
         offset = _balanced_offset(top[solid], plane[solid], h[solid])
-        if np.isfinite(offset):
+        if math.isfinite(offset):
             # w <= c0 + o + c1 u + c2 v  <=>  (-c1, -c2, 1) . x <= c0 + o
             new_pts = clip_halfspace(pts, hull, np.array([-coef[1], -coef[2], 1.0]),
                                       coef[0] + offset)
             # a plane below the whole tile would leave a flat piece: keep the hull then
-            if len(new_pts) >= 4 and new_pts[:, 2].max() > _MIN_HEIGHT:
+            if len(new_pts) >= 4 and _max(new_pts[:, 2]) > _MIN_HEIGHT:
                 hull_points, pts = pts, new_pts
                 top = np.minimum(top, plane + offset)
                 # shortfall measured across the plane's slope, like a distance
                 tilt = np.sqrt(1.0 + coef[1] ** 2 + coef[2] ** 2)
-                shortfall = float(np.max(h[solid] - np.maximum(top[solid], 0.0))) / tilt
+                shortfall = float(_max(h[solid] - np.maximum(top[solid], 0.0))) / tilt
     hit = top > 0
-    intrusion = float(field.distance(cols[hit], top[hit]).max()) if hit.any() else 0.0
+    intrusion = float(_max(field.distance(cols[hit], top[hit]))) if hit.any() else 0.0
     error = max(intrusion, _INTRUSION_WEIGHT * shortfall)
-    return _Tile(members, pts, error if error > _EXACT else 0.0, hull_points)
-
-
-def _rss(sums: np.ndarray) -> np.ndarray:
-    """Residual sums of squares of least-squares planes from their normal equations, batched:
-    sums [10, ...] as ``_normal_terms`` lays them out -> sq - rhs . gram^-1 rhs.  Closed-form
-    3x3 inverse (adjugate): thousands of tiny solves, no LAPACK call overhead."""
-    a, b, c, d, e, f = sums[:6]
-    d, f = d + _RIDGE, f + _RIDGE
-    # cofactors of the symmetric matrix [[a b c] [b d e] [c e f]]
-    A, B, C = d * f - e * e, c * e - b * f, b * e - c * d
-    D, E, F = a * f - c * c, b * c - a * e, a * d - b * b
-    det = a * A + b * B + c * C
-    x, y, z, sq = sums[6:]
-    quad = (A * x * x + D * y * y + F * z * z + 2 * (B * x * y + C * x * z + E * y * z))
-    return sq - quad / np.where(np.abs(det) > 1e-300, det, np.inf)
-
-
-def _normal_terms(x: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Per column, the terms whose sums are the normal equations of a plane fit: x [3, n]
-    (1, u, v), h [n] -> [10, n]: the gram's upper triangle x0x0 x0x1 x0x2 x1x1 x1x2 x2x2, then
-    x0h x1h x2h, then h h."""
-    terms = np.empty((10, x.shape[1]))
-    for k, (i, j) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
-        np.multiply(x[i], x[j], out=terms[k])
-    np.multiply(x, h, out=terms[6:9])
-    np.multiply(h, h, out=terms[9])
-    return terms
-
-
-_RIDGE = 1e-6  # on the slope terms (index units): keeps one-line tiles' planes flat
-
-
-def _best_cut(field: _HeightField, members: np.ndarray):
-    """Split a tile's columns along the straight cut after which planes fit both halves best.
-
-    For each direction in ``_CUT_ANGLES_DEG`` the columns are ordered along the direction's
-    normal; every gap between distinct positions is a candidate cut.  Cost: the halves'
-    residual sums of squares about their least-squares planes (empty columns count as height 0),
-    for all cuts at once from prefix sums of the normal equations.  Pieces end up nearly planar,
-    which is what a hull (clipped or not) fits; a thin high wall beside a low floor is peeled off
-    in one cut.  Returns the two member arrays, or None for a single column."""
-    n = len(members)
-    if n < 2:
-        return None
-    iu = field.iu[members].astype(np.float64)
-    iv = field.iv[members].astype(np.float64)
-    h = field.h_flat[members]
-    x = np.stack([np.ones(n), iu - iu.mean(), iv - iv.mean()], 1)  # [n, 3]
-    gram = np.einsum("ni,nj->ij", x, x)
-    rhs = np.einsum("ni,n->i", x, h)
-    total = np.array([gram[0, 0], gram[0, 1], gram[0, 2], gram[1, 1], gram[1, 2], gram[2, 2],
-                      rhs[0], rhs[1], rhs[2], np.sum(h * h)])
-    terms = _normal_terms(x.T, h)
-    min_side = max(1.0, _MIN_SIDE * np.sqrt(n))
-    # every direction at once: positions along its normal, the columns in that order, and the
-    # normal equations' prefix sums down that order
-    t = _CUT_COS * iu + _CUT_SIN * iv  # [directions, n]
-    orders = np.argsort(t, axis=1, kind="stable")
-    ts = np.take_along_axis(t, orders, axis=1)
-    # a cut before sorted position q + 1 wherever the position steps; no slivers: a cut that
-    # shaves a corner column off lowers the squares a lot (an empty corner counts as height 0)
-    # but not the worst error
-    q = np.arange(1, n)
-    ok = (np.diff(ts, axis=1) > 1e-9) & (q >= min_side) & (n - q >= min_side)
-    direction, q = np.nonzero(ok)
-    if len(q) == 0:
-        return None
-    prefix = np.cumsum(terms[:, orders], axis=2)  # [10, directions, n]
-    before = prefix[:, direction, q]  # [10, cuts]
-    cost = _rss(before) + _rss(total[:, None] - before)
-    cuts = q + 1
-    # prefer cuts near the middle among near-equals: balanced tiles shrink errors fastest
-    first = np.ones(len(q), bool)
-    first[1:] = direction[1:] != direction[:-1]
-    starts = np.flatnonzero(first)
-    scale = np.maximum.reduceat(np.abs(cost), starts)[np.cumsum(first) - 1]
-    cost = cost + 1e-9 * (1.0 + scale) * np.abs(cuts - n / 2) / n
-    j = int(np.argmin(cost))  # the first minimum: earlier directions win ties
-    order, p = orders[direction[j]], cuts[j]
-    return np.sort(members[order[:p]]), np.sort(members[order[p:]])
+    return _Tile(members, pts, error if error > _EXACT else 0.0, hull_points, hull)
 
 
 def _tile_height_map(height: np.ndarray, g: GeometryConfig, max_tiles: int,
@@ -367,7 +355,7 @@ def _tile_height_map(height: np.ndarray, g: GeometryConfig, max_tiles: int,
         if -neg_error <= 0.0:
             done.append(tile)
             break
-        halves = _best_cut(field, tile.members)
+        halves = best_cut(field.h_flat, field.r, tile.members)
         if halves is None:
             done.append(tile)
             continue
@@ -409,15 +397,7 @@ def finger_hulls(finger_tsdf, cfg=None, *, max_pieces: int | None = None,
     k = max_pieces or g.finger_hulls
     v = max_vertices or g.hull_vertices
     height = finger_height_map(finger_tsdf, g)
-    pieces = []
-    for tile in _tile_height_map(height, g, k, cover):
-        try:
-            pieces.append(reduce_vertices(tile.points, v))
-        except DecompositionError:
-            if tile.hull_points is None:
-                raise
-            pieces.append(reduce_vertices(tile.hull_points, v))  # a clip left a sliver
-    return pack_pieces(pieces, k, v)
+    return pack_pieces([tile.vertices(v) for tile in _tile_height_map(height, g, k, cover)], k, v)
 
 
 _memo: OrderedDict[tuple, Hulls] = OrderedDict()
