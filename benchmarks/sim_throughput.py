@@ -21,6 +21,13 @@ core, on the reference's hulls; needs the ``pybullet`` extra, else skipped) on t
 subset.  Printed: evaluations/s, per core, physics steps/s, steps per evaluation and grasp
 success per row, and the per-core ratios fast / reference and fast / PyBullet.
 
+Those rows repeat fingers, meshed once per process.  The unique rows (``--unique-n``, default
+``--per-core-n``; ``bench.sim_costs``) time new designs, every finger moved by its own field of
+``--unique-sd`` voxels and meshed inside the row, one thread, under fast, reference and the
+PyBullet peer: per-core evaluations/s, fast / reference and fast / PyBullet, then a fast
+evaluation's ms part by part over ``--breakdown-n`` of them (finger pieces, model building, jaw
+opener, checks, mj_step, ...).
+
 ``--executor ray [--ray-address ADDR]`` adds the default preset on Ray (``sim.evaluate(...,
 executor="ray")``, a local cluster over this machine's cores unless an address is given) on the
 same triples and pieces: its evaluations/s, ``ray_overhead`` = threads' evaluations/s / Ray's
@@ -65,6 +72,7 @@ from pathlib import Path
 import numpy as np
 
 from f2f_jax import config, sim
+from f2f_jax.bench import sim_costs
 from f2f_jax.bench.agreement import load_objects
 from f2f_jax.cli import sim_options
 from f2f_jax.geometry import imprint_fingers
@@ -143,6 +151,12 @@ def main(argv=None) -> int:
     p.add_argument("--n", type=int, default=32, help="triples for the all-core runs (default 32)")
     p.add_argument("--per-core-n", "--pybullet-n", dest="per_core_n", type=int, default=8,
                    help="of those, triples for the one-thread runs and the PyBullet peer (default 8)")
+    p.add_argument("--unique-n", type=int, default=None,
+                   help="unique-design triples for the one-thread unique rows (default --per-core-n)")
+    p.add_argument("--unique-sd", type=float, default=0.5,
+                   help="the unique designs' fields, voxels of standard deviation (default 0.5)")
+    p.add_argument("--breakdown-n", type=int, default=4,
+                   help="of the unique designs, evaluations timed part by part (default 4; 0 skips)")
     p.add_argument("--threads", type=int, default=os.cpu_count())
     p.add_argument("--config", default="default", choices=sorted(config.CONFIGS))
     p.add_argument("--objects", type=Path, default=None, help="a mesh directory (default: builtin objects)")
@@ -260,26 +274,32 @@ def main(argv=None) -> int:
     if k > 0:
         for name in presets:
             run(f"{name} 1 thread", name, k, 1)
-    if k > 0 and not args.no_pybullet:
+    peer = None
+    if not args.no_pybullet:
         try:
             from f2f_jax.bench import pybullet_runs as peer
         except ImportError as exc:
             print(f"PyBullet peer skipped: {exc} (pip install -e '.[pybullet]')")
-        else:
-            ref = presets["reference"]
-            lh = [finger_hulls(f, ref) for f in lefts[:k]]
-            rh = [finger_hulls(f, ref) for f in rights[:k]]
-            start = time.perf_counter()
-            pout, stats = peer.evaluate_original(pieces["reference"][:k], lh, rh, cfg=ref)
-            rows["pybullet_original"] = dict(evals=k, seconds=time.perf_counter() - start,
-                                             steps=int(stats["steps"]), workers=1,
-                                             grasp_rate=float(pout[:, 0].mean()))
+    if k > 0 and peer is not None:
+        ref = presets["reference"]
+        lh = [finger_hulls(f, ref) for f in lefts[:k]]
+        rh = [finger_hulls(f, ref) for f in rights[:k]]
+        start = time.perf_counter()
+        pout, stats = peer.evaluate_original(pieces["reference"][:k], lh, rh, cfg=ref)
+        rows["pybullet_original"] = dict(evals=k, seconds=time.perf_counter() - start,
+                                         steps=int(stats["steps"]), workers=1,
+                                         grasp_rate=float(pout[:, 0].mean()))
+    u = min(args.per_core_n if args.unique_n is None else args.unique_n, len(objs))
+    unique = None if u < 1 else sim_costs.unique_report(  # new designs, fingers meshed in the rows
+        objs[:u], {n: pieces[n][:u] for n in presets}, presets, sd_voxels=args.unique_sd,
+        seed=args.seed, breakdown_n=args.breakdown_n, pybullet=peer is not None)
+    rows.update(unique["rows"] if unique else {})
 
-    print(f"\n{'simulator':22s} {'evals':>6s} {'seconds':>8s} {'evals/s':>8s} {'per core':>9s} "
+    print(f"\n{'simulator':26s} {'evals':>6s} {'seconds':>8s} {'evals/s':>8s} {'per core':>9s} "
           f"{'steps/s':>9s} {'steps/eval':>10s} {'grasp':>6s}")
     for label, r in rows.items():
         eps = r["evals"] / r["seconds"]
-        print(f"{label:22s} {r['evals']:6d} {r['seconds']:8.2f} {eps:8.2f} {eps / r['workers']:9.2f} "
+        print(f"{label:26s} {r['evals']:6d} {r['seconds']:8.2f} {eps:8.2f} {eps / r['workers']:9.2f} "
               f"{r['steps'] / r['seconds']:9.0f} {r['steps'] / r['evals']:10.0f} {r['grasp_rate']:6.2f}")
 
     def rate(label):
@@ -314,6 +334,9 @@ def main(argv=None) -> int:
         print(f"per core, same {k} triples: fast / PyBullet-original = "
               f"{result['ratio_mujoco_vs_pybullet']:.1f}x (target >= 30x); reference / PyBullet = "
               f"{result['ratio_reference_vs_pybullet']:.1f}x")
+    if unique is not None:
+        result.update(unique["result"])
+        print("\n".join(unique["lines"]))
     for backend in backends:
         if backend != "mujoco":
             if args.json:  # what is measured so far, in case the batched rows are cut short

@@ -199,6 +199,11 @@ def test_exploding_state_is_a_counted_failure_not_a_crash(sphere_hulls, flat_tip
     runner.place(0.0)
     runner.data.qvel[scene_ids(model).object_dof] = np.nan
     assert not runner.healthy()
+    # a MuJoCo warning since the trial began (the runner reads the counters through a view)
+    runner.place(0.0)
+    assert runner.healthy()
+    runner.data.warning[int(mujoco.mjtWarning.mjWARN_BADQACC)].number += 1
+    assert not runner.healthy()
 
 
 def test_a_candidate_that_cannot_be_built_fails_alone(sphere_tsdf, sphere_hulls, tiny):

@@ -307,3 +307,73 @@ def test_hull_slot_k_becomes_geom_k_even_with_gaps(wsg_hulls, cfg):
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
     assert world_vertices(model, data, model.geom("object_2").id)[:, 0].min() > -1e-9
+
+
+def test_host_line_extents_are_the_shared_rule_bit_for_bit():
+    """JawOpener's host extents (facets split by the sign of n_x) are ``x_extent``'s to the bit,
+    also for boxes (facets parallel to the lines) and turns by right angles."""
+    from scipy.spatial import ConvexHull
+    from scipy.spatial.transform import Rotation
+
+    from f2f_jax.sim.opening import _host_extent, x_extent
+
+    rng = np.random.default_rng(3)
+    y = np.arange(-0.03, 0.03, 0.001)[:, None] + 1e-4
+    z = np.arange(0.0, 0.06, 0.001)[None, :]
+    for trial in range(120):
+        if trial % 3 == 0:
+            points = box_corners(-rng.uniform(0.002, 0.02, 3), rng.uniform(0.002, 0.02, 3))
+        else:
+            points = rng.normal(size=(rng.integers(4, 33), 3)) * 0.01
+        turn = Rotation.from_euler("z", 90 * trial, degrees=True) if trial % 4 == 0 else \
+            Rotation.random(random_state=trial)
+        args = (ConvexHull(points).equations, turn.as_matrix(), rng.normal(size=3) * 0.01, y, z)
+        for a, b in zip(x_extent(*args, np), _host_extent(*args)):
+            assert a.shape == b.shape and np.array_equal(a, b)
+
+
+def test_models_from_the_parsed_gripper_and_remembered_volumes_are_the_first_ones(
+        sphere_hulls, wsg_hulls, cfg, monkeypatch):
+    """build_model copies the gripper spec parsed once and remembers object piece volumes: the
+    compiled model is byte for byte the one parsed from the file with every volume computed."""
+    from f2f_jax.sim import scene
+
+    def saved(model):
+        buf = np.empty(mujoco.mj_sizeModel(model), np.uint8)
+        mujoco.mj_saveModel(model, None, buf)
+        return buf.tobytes()
+
+    twice = [saved(build_model(sphere_hulls, *wsg_hulls, cfg)) for _ in range(2)]
+    monkeypatch.setattr(scene, "_gripper_spec", lambda: mujoco.MjSpec.from_file(str(GRIPPER_XML)))
+    monkeypatch.setattr(scene, "_volumes", type(scene._volumes)())
+    assert twice[0] == twice[1] == saved(build_model(sphere_hulls, *wsg_hulls, cfg))
+
+
+def test_finger_object_contacts_and_remembered_planes_match_their_first_forms(
+        sphere_tsdf, cfg):
+    """The contact count (sets of geom ids) is np.isin's count; a second opener on the same
+    object reuses its pieces' planes and gives the same openings."""
+    from f2f_jax.sim.opening import JawOpener
+    from f2f_jax.sim.scene import finger_object_contacts
+
+    left, right = imprint_fingers(sphere_tsdf, cfg.geometry)
+    hulls = pad_hulls([tsdf_to_mesh(sphere_tsdf, cfg.geometry).vertices], cfg.geometry.object_hulls,
+                      cfg.geometry.hull_vertices)
+    model = build_model(hulls, finger_hulls(left, cfg), finger_hulls(right, cfg), cfg)
+    runner = GraspRunner(model, cfg)
+    runner.place(0.0)
+    runner.advance(cfg.sim.steps(cfg.sim.settle_time))
+    runner.approach()
+    d, ids = runner.data, runner.ids
+    d.ctrl[ids.grip_act] = ids.jaw_range[:, 0]
+    runner.advance(cfg.sim.steps(cfg.sim.close_time))
+    mujoco.mj_forward(model, d)
+    geoms = d.contact.geom[: d.ncon]
+    fingers = ids.all_finger_geoms
+    expected = np.count_nonzero((np.isin(geoms[:, 0], fingers) & np.isin(geoms[:, 1], ids.object_geoms))
+                                | (np.isin(geoms[:, 1], fingers) & np.isin(geoms[:, 0], ids.object_geoms)))
+    assert expected > 0 and finger_object_contacts(model, d, ids) == expected
+    runner.place(0.0)
+    first, second = runner.opener, JawOpener(model, ids, cfg)
+    assert all(second._local[int(g)] is first._local[int(g)] for g in ids.object_geoms)
+    np.testing.assert_array_equal(first(mujoco.MjData(model), 0.003), second(mujoco.MjData(model), 0.003))

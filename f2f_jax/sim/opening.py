@@ -15,6 +15,9 @@ lines ``MJX_LINE_SPACING`` apart, and ``warp_batch`` runs it as a kernel over ``
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
+
 import mujoco
 import numpy as np
 from scipy.spatial import ConvexHull, QhullError
@@ -30,6 +33,9 @@ LINE_SPACING = 0.001  # m between the lines of the host's (and warp's) grid: 61 
 MJX_LINE_SPACING = 0.0015
 BACKOFF_ROUNDS = 8  # exact-distance corrections after the line rule, at most
 _PARALLEL = 1e-12  # |n_x| below this: a facet parallel to the lines
+_PLANES_KEPT = 512  # object pieces' planes remembered (JawOpener._local_planes)
+_planes: OrderedDict[bytes, tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_planes_lock = threading.Lock()
 
 
 def line_axes(cfg: Config, spacing: float = LINE_SPACING) -> tuple[np.ndarray, np.ndarray]:
@@ -69,6 +75,30 @@ def x_extent(planes, rot, pos, y, z, xp=np):
     return lower, upper, hit
 
 
+def _host_extent(planes, rot, pos, y, z):
+    """``x_extent(planes, rot, pos, y, z, np)`` with the facets split by the sign of their world
+    n_x first, so that each line meets only the facets that bound it: the same values bit for bit
+    (each bound is the same quotient, -a / n_x = a / -n_x exactly, and a min or max over fewer
+    entries that left out only infinities is the same), at a third of the array passes."""
+    n = planes[:, :3] @ rot.T  # world normals, as x_extent computes them
+    d = planes[:, 3] - n @ pos
+    nx = n[:, 0]
+    up, down = nx > _PARALLEL, nx < -_PARALLEL
+    parallel = ~(up | down)
+    order = np.concatenate([np.flatnonzero(up), np.flatnonzero(down), np.flatnonzero(parallel)])
+    k_up, k_down = int(up.sum()), int(down.sum())
+    n, d = n[order], d[order]
+    # a = -c of x_extent, [F, Y, Z]: the same sums in the same order
+    a = d[:, None, None] + n[:, 1, None, None] * y + n[:, 2, None, None] * z
+    shape, k = a.shape[1:], k_up + k_down
+    hit = (a[k:] <= 0).all(0)  # a line outside a parallel facet's half-space misses the piece
+    bound = np.divide(a[:k], -n[:k, 0, None, None], out=a[:k])  # in place: c / n_x
+    upper = bound[:k_up].min(0) if k_up else np.full(shape, np.inf)
+    lower = bound[k_up:].max(0) if k_down else np.full(shape, -np.inf)
+    hit &= lower <= upper
+    return lower, upper, hit
+
+
 def _geom_local_vertices(model: mujoco.MjModel, geom: int) -> np.ndarray:
     """[n, 3] vertices of a convex geom in its own frame (meshes and boxes)."""
     gtype = model.geom_type[geom]
@@ -93,19 +123,36 @@ class JawOpener:
         ys, zs = line_axes(cfg, spacing)
         self.lines = line_grid(cfg, spacing)  # [L, 2] (y, z) in world
         self._ys, self._zs, self._spacing = ys, zs, spacing
-        self._local = {int(gid): self._local_planes(gid)
-                       for gid in np.concatenate([ids.all_finger_geoms, ids.object_geoms])}
+        self._local = {int(gid): self._local_planes(gid) for gid in ids.all_finger_geoms}
+        # every candidate of one object has the same object pieces: their planes are remembered
+        self._local.update({int(gid): self._local_planes(gid, remember=True)
+                            for gid in ids.object_geoms})
         self._finger_reach: list[tuple[np.ndarray, np.ndarray]] | None = None
 
-    def _local_planes(self, geom: int) -> tuple[np.ndarray, np.ndarray]:
+    def _local_planes(self, geom: int, remember: bool = False) -> tuple[np.ndarray, np.ndarray]:
         """([F, 4] facet planes (n, d) with n . p + d <= 0 inside, [V, 3] hull vertices), in the
-        geom's frame."""
+        geom's frame; ``remember``: kept for the last ``_PLANES_KEPT`` vertex sets seen so."""
         verts = _geom_local_vertices(self.model, geom)
+        key = verts.tobytes() if remember else None
+        if key is not None:
+            with _planes_lock:
+                hit = _planes.get(key)
+                if hit is not None:
+                    _planes.move_to_end(key)
+                    return hit
         try:
             hull = ConvexHull(verts)
         except (QhullError, ValueError):
             raise DecompositionError(f"geom {geom}: its vertices span no volume") from None
-        return hull.equations, verts[hull.vertices]
+        planes = (hull.equations, verts[hull.vertices])
+        if key is not None:
+            for arr in planes:
+                arr.setflags(write=False)
+            with _planes_lock:
+                _planes[key] = planes
+                while len(_planes) > _PLANES_KEPT:
+                    _planes.popitem(last=False)
+        return planes
 
     def _window(self, lo: float, hi: float, axis: np.ndarray) -> slice:
         """The lines of one grid axis whose coordinate lies in [lo, hi] (a little wider)."""
@@ -131,7 +178,7 @@ class JawOpener:
                 continue
             y = self._ys[wy][:, None]  # [Y, 1]
             z = self._zs[wz][None, :]  # [1, Z]
-            lower, upper, hit = x_extent(planes, rot, data.geom_xpos[gid], y, z, np)
+            lower, upper, hit = _host_extent(planes, rot, data.geom_xpos[gid], y, z)
             lo[wy, wz] = np.where(hit, np.minimum(lo[wy, wz], lower), lo[wy, wz])
             hi[wy, wz] = np.where(hit, np.maximum(hi[wy, wz], upper), hi[wy, wz])
         return lo.ravel(), hi.ravel()

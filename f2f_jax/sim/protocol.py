@@ -132,6 +132,7 @@ class GraspRunner:
                  data: mujoco.MjData | None = None):
         self.model = model
         self.cfg = cfg or Config()
+        self._own_data = data is None  # free to run kinematics on before the first place()
         self.data = data if data is not None else mujoco.MjData(model)
         self.ids: SceneIds = scene_ids(model)
         self.opener = JawOpener(model, self.ids, self.cfg)
@@ -142,6 +143,13 @@ class GraspRunner:
         self._warnings = 0
         self._lift_dof = int(self.model.jnt_dofadr[self.model.joint("lift").id])
         self._speed_dofs = np.concatenate([self.ids.jaw_dof, [self._lift_dof]]).astype(np.int64)
+        self._speed_dof_list = self._speed_dofs.tolist()
+        # views into the MjData (its arrays never move): the checks after every few steps read
+        # them without building a new array object each time
+        d = self.data
+        self._qpos, self._qvel, self._xipos, self._xpos = d.qpos, d.qvel, d.xipos, d.xpos
+        self._warning_numbers = d.warning.number
+        self._lift_targets = lift_targets(self.cfg)
         self._reach_setup()
 
     def _reach_setup(self) -> None:
@@ -149,7 +157,7 @@ class GraspRunner:
         (jaws only slide, so it is fixed), the object pieces' vertices in their geom frames,
         and their furthest distance from the object's centre of mass."""
         m = self.model
-        data = mujoco.MjData(m)
+        data = self.data if self._own_data else mujoco.MjData(m)  # fresh; place() resets it
         mujoco.mj_kinematics(m, data)
         mujoco.mj_comPos(m, data)
 
@@ -163,6 +171,7 @@ class GraspRunner:
         for side, geoms in enumerate(self.ids.finger_geoms):
             low = min((float(world_vertices(g)[1][:, 2].min()) for g in geoms), default=np.inf)
             self._finger_low[side] = low - data.xpos[self._jaw_bodies[side], 2]
+        self._jaw_list, self._finger_low_list = self._jaw_bodies.tolist(), self._finger_low.tolist()
         self._object_vertices = [(int(g), world_vertices(g)[0]) for g in self.ids.object_geoms]
         com = data.xipos[self.ids.object_body]
         self._object_radius = max(float(np.linalg.norm(world_vertices(g)[1] - com, axis=1).max())
@@ -170,15 +179,14 @@ class GraspRunner:
 
     # --- low level --------------------------------------------------------------------------
     def _warning_count(self) -> int:
-        return int(self.data.warning.number.sum())
+        return sum(self._warning_numbers.tolist())
 
     def _finite(self) -> bool:
         """False if MuJoCo warned since the trial began or the state is not finite."""
-        d = self.data
         # a sum is NaN or infinite when any of its terms is: one check instead of one per entry
         # (this runs after every few steps)
-        return (self._warning_count() == self._warnings
-                and math.isfinite(float(d.qpos.sum()) + float(d.qvel.sum())))
+        return (sum(self._warning_numbers.tolist()) == self._warnings
+                and math.isfinite(float(self._qpos.sum()) + float(self._qvel.sum())))
 
     def healthy(self) -> bool:
         """False if MuJoCo warned since the trial began, the state is not finite or anything
@@ -188,12 +196,26 @@ class GraspRunner:
     def speed(self) -> float:
         """The fastest motion in the scene (m/s): the object's linear speed, its angular speed
         at ``SPIN_RADIUS``, the jaws' and the lift's speeds."""
-        d, o = self.data, self.ids.object_dof
+        o = self.ids.object_dof
         # plain floats: this runs after every few steps, where numpy's per-call cost dominates
-        vx, vy, vz, wx, wy, wz = d.qvel[o: o + 6].tolist()
+        qvel = self._qvel.tolist()
+        vx, vy, vz, wx, wy, wz = qvel[o: o + 6]
         return max(math.sqrt(vx * vx + vy * vy + vz * vz),
                    math.sqrt(wx * wx + wy * wy + wz * wz) * SPIN_RADIUS,
-                   max(abs(v) for v in d.qvel[self._speed_dofs].tolist()))
+                   max(abs(qvel[i]) for i in self._speed_dof_list))
+
+    def _checked_speed(self) -> float:
+        """``speed()`` if ``_finite()``, else inf, from one read.  Plain sums: MuJoCo resets (and
+        warns about) entries beyond 1e10, so these are finite exactly when numpy's are."""
+        qvel = self._qvel.tolist()
+        if (sum(self._warning_numbers.tolist()) != self._warnings
+                or not math.isfinite(sum(self._qpos.tolist()) + sum(qvel))):
+            return math.inf
+        o = self.ids.object_dof
+        vx, vy, vz, wx, wy, wz = qvel[o: o + 6]
+        return max(math.sqrt(vx * vx + vy * vy + vz * vz),
+                   math.sqrt(wx * wx + wy * wy + wz * wz) * SPIN_RADIUS,
+                   max(abs(qvel[i]) for i in self._speed_dof_list))
 
     def advance(self, n: int, *, stop_below: float | None = None,
                 chunk: int = CHECK_EVERY, until_rest: bool = False) -> bool:
@@ -216,7 +238,7 @@ class GraspRunner:
             mujoco.mj_step(self.model, self.data, nstep=k)
             done += k
             self.steps += k
-            speed = self.speed() if self._finite() else np.inf  # healthy(), speed kept
+            speed = self._checked_speed()
             if speed > s.max_speed:
                 raise Unstable(f"unstable state at t = {self.data.time:.3f} s")
             if stop_below is not None and self.object_height() < stop_below:
@@ -231,7 +253,7 @@ class GraspRunner:
         return True
 
     def object_height(self) -> float:
-        return float(self.data.xipos[self.ids.object_body, 2])
+        return float(self._xipos[self.ids.object_body, 2])
 
     def dropped(self, below: float) -> bool:
         """True once no finger can meet the object again while the gripper rises: its centre
@@ -239,10 +261,12 @@ class GraspRunner:
         is ``DROP_CLEARANCE`` above its highest point.  Nothing else lifts it (the floor only
         holds it up), so the trial's outcome is decided: a failure."""
         d, ids = self.data, self.ids
-        centre = float(d.xipos[ids.object_body, 2])
-        if centre >= below or d.qvel[ids.object_dof + 2] > d.qvel[self._lift_dof]:
+        centre = float(self._xipos[ids.object_body, 2])
+        if centre >= below or self._qvel[ids.object_dof + 2] > self._qvel[self._lift_dof]:
             return False
-        low = float(np.min(d.xpos[self._jaw_bodies, 2] + self._finger_low))
+        xpos, (left, right), (left_low, right_low) = self._xpos, self._jaw_list, self._finger_low_list
+        low, other = float(xpos[left, 2]) + left_low, float(xpos[right, 2]) + right_low
+        low = other if math.isnan(other) or other < low else low  # np.min's: NaN wins
         if low <= centre:  # the fingers still reach below its centre: the common case
             return False
         if low > centre + self._object_radius + DROP_CLEARANCE:
@@ -331,7 +355,7 @@ class GraspRunner:
         self.advance(s.steps(s.close_time), until_rest=True)
         # The lift actuator integrates its command (a speed) into its position target: a
         # constant command per chunk moves the target exactly along the profile's chord.
-        targets = lift_targets(self.cfg)
+        targets = self._lift_targets
         chunk = lift_chunk(self.cfg)
         below = z_start + s.success_min_height
         for i in range(0, len(targets) - 1, chunk):

@@ -13,6 +13,9 @@ frame ``(u, v, w)`` and are placed on the jaw by the rotation of ``geometry.fing
 
 from __future__ import annotations
 
+import functools
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -113,6 +116,11 @@ class SceneIds:
     def all_finger_geoms(self) -> np.ndarray:
         return np.concatenate(self.finger_geoms)
 
+    @functools.cached_property
+    def geom_sets(self) -> tuple[frozenset, frozenset]:
+        """(finger geom ids, object geom ids) as sets of ints: ``finger_object_contacts``' test."""
+        return (frozenset(self.all_finger_geoms.tolist()), frozenset(self.object_geoms.tolist()))
+
 
 def scene_ids(model: mujoco.MjModel) -> SceneIds:
     """Look up the bodies, joints, actuators and colliding geoms of a model from ``build_model``."""
@@ -166,6 +174,41 @@ def _hull_volume(points: np.ndarray, what: str) -> float:
     except (QhullError, ValueError) as exc:
         raise DecompositionError(f"{what}: a piece spans no volume ({len(points)} points): "
                                  f"{str(exc).strip().splitlines()[0]}") from None
+
+
+_parsed: list[mujoco.MjSpec] = []  # the gripper's XML, parsed once per process
+_lock = threading.Lock()
+
+
+def _gripper_spec() -> mujoco.MjSpec:
+    """A fresh MjSpec of ``GRIPPER_XML``: a copy of the one parsed once (the same spec)."""
+    with _lock:
+        if not _parsed:
+            _parsed.append(mujoco.MjSpec.from_file(str(GRIPPER_XML)))
+        return _parsed[0].copy()
+
+
+# Object piece volumes by their vertices: every candidate of one object builds the same pieces.
+_VOLUMES_KEPT = 64
+_volumes: OrderedDict[bytes, list[float]] = OrderedDict()
+
+
+def _piece_volumes(slots: list, what: str) -> list[float]:
+    """``_hull_volume`` of each real piece of ``_slot_pieces``' slots, in slot order; remembered
+    for the last ``_VOLUMES_KEPT`` piece sets (an error is raised again, not remembered)."""
+    real = [p for p in slots if p is not None]
+    key = b"".join(np.ascontiguousarray(p).tobytes() + len(p).to_bytes(4, "little") for p in real)
+    with _lock:
+        hit = _volumes.get(key)
+        if hit is not None:
+            _volumes.move_to_end(key)
+            return hit
+    volumes = [_hull_volume(p, f"{what} piece {k}") for k, p in enumerate(slots) if p is not None]
+    with _lock:
+        _volumes[key] = volumes
+        while len(_volumes) > _VOLUMES_KEPT:
+            _volumes.popitem(last=False)
+    return volumes
 
 
 def _yaw_quat(yaw: float) -> np.ndarray:
@@ -247,7 +290,7 @@ def build_model(object_hulls: Hulls, left_hulls: Hulls | None, right_hulls: Hull
     s = cfg.sim
     mu = s.finger_friction if friction is None else float(friction)
     mass = s.object_mass if object_mass is None else float(object_mass)
-    spec = mujoco.MjSpec.from_file(str(GRIPPER_XML))
+    spec = _gripper_spec()
     _apply_sim_config(spec, cfg)
     spec.modelname = "f2f_grasp"
     spec.geom("floor").friction = [s.object_friction, 0.005, 0.0001]
@@ -275,8 +318,7 @@ def _add_object(spec: mujoco.MjSpec, object_hulls: Hulls, cfg: Config, *, mass: 
     s = cfg.sim
     slots = _slot_pieces(object_hulls, "object hulls")
     pieces = [p for p in slots if p is not None]
-    volumes = [_hull_volume(p, f"object hulls piece {k}") for k, p in enumerate(slots)
-               if p is not None]
+    volumes = _piece_volumes(slots, "object hulls")
     density = mass / sum(volumes)  # overlapping pieces count twice; coacd's overlap is small
     z_min = min(float(p[:, 2].min()) for p in pieces)
     body = spec.worldbody.add_body(name="object", pos=[xy[0], xy[1], -z_min], quat=_yaw_quat(yaw))
@@ -341,11 +383,13 @@ def finger_object_distance(model: mujoco.MjModel, data: mujoco.MjData, ids: Scen
            - model.geom_rbound[fingers][:, None] - model.geom_rbound[objects][None])
     order = np.argsort(gap, axis=None)
     best = distmax
-    for flat in order:
-        if gap.flat[flat] >= best:
+    per_finger = len(objects)
+    fingers, objects = fingers.tolist(), objects.tolist()  # plain ints and floats: a tight loop
+    for flat, lower in zip(order.tolist(), gap.ravel()[order].tolist()):
+        if lower >= best:
             break
-        fg, og = fingers[flat // len(objects)], objects[flat % len(objects)]
-        best = min(best, mujoco.mj_geomDistance(model, data, int(fg), int(og), distmax, None))
+        fg, og = fingers[flat // per_finger], objects[flat % per_finger]
+        best = min(best, mujoco.mj_geomDistance(model, data, fg, og, distmax, None))
     return best
 
 
@@ -354,8 +398,6 @@ def finger_object_contacts(model: mujoco.MjModel, data: mujoco.MjData, ids: Scen
     n = data.ncon
     if n == 0:
         return 0
-    geoms = data.contact.geom[:n]
-    fingers = ids.all_finger_geoms
-    a = np.isin(geoms[:, 0], fingers) & np.isin(geoms[:, 1], ids.object_geoms)
-    b = np.isin(geoms[:, 1], fingers) & np.isin(geoms[:, 0], ids.object_geoms)
-    return int(np.count_nonzero(a | b))
+    fingers, objects = ids.geom_sets
+    return sum(1 for g0, g1 in data.contact.geom[:n].tolist()
+               if (g0 in fingers and g1 in objects) or (g1 in fingers and g0 in objects))
