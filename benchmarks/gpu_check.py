@@ -1,6 +1,6 @@
 """The GPU check: every accelerator figure in one command and one JSON.
 
-    python benchmarks/gpu_check.py --out gpu_check.json         # one GPU: <= 11 minutes end to end
+    python benchmarks/gpu_check.py --out gpu_check.json         # one GPU: <= 13 minutes end to end
     python benchmarks/gpu_check.py --cpu --tiny --out dry.json   # dry run on a CPU (minutes)
 
 Runs, one after the other, each as its own process with its own time limit (a step that runs
@@ -21,11 +21,16 @@ out of time or fails is recorded with its output's tail, and the next one still 
    ``--mjx-sizes``, compile apart (MJX's full evaluations run at ~2 per second on an H100: a full
    8,192-candidate batch would take an hour, so its rate is measured per step).
 4. ``train_throughput.py --config paper``: the paper-size training step per stage.
+5. ``gpu_check.py --options-step``: MuJoCo Warp's two options on mixed builtin triples (imprint,
+   WSG50, cut) tiled to ``--options-size`` under the fast preset: the pair list as MuJoCo Warp
+   builds it, with ``pair_filter`` (the default: pairs that cannot touch left out), and with
+   ``rest_stop`` too (resting phases end early): pairs the broad phase tests and pairs that reach
+   the narrow phase per world, evaluations/s, and outcomes against the unfiltered run's.
 
 The JSON (written after every step, so a killed run keeps what finished) holds ``device``
 (GPU name, warp and JAX devices), ``steps`` ({name: {rc, seconds, command, tail}}), each
 step's own JSON under its name: ``throughput``, ``mjx``, ``agreement``, ``training``, and
-``summary``: the figures as markdown lines, also printed at the end.
+``summary``: the figures as markdown lines, also printed at the end; ``options`` holds step 5's rows.
 
 ``--cpu`` allows running without a GPU (otherwise refused: the sizes would take hours on a CPU);
 ``--tiny`` shrinks every step to a smoke test (tiny config, 2 triples, batches of 2 and 4, 4
@@ -102,7 +107,47 @@ def plan(args) -> list[tuple[str, list[str], int]]:
                        "reference", "--backends", "warp", "mujoco"], args.agreement_s),
         ("mjx", [py, str(HERE / "mjx_contacts.py"), *mjx, "--vertices", "32"], args.mjx_s),
         ("training", [py, str(HERE / "train_throughput.py"), *trn], args.training_s),
-    ]
+    ] + ([("options", [py, str(HERE / "gpu_check.py"), "--options-step", "--options-size",
+                       str(4 if args.tiny else args.options_size), *(["--tiny"] if args.tiny else [])],
+           args.options_s)] if getattr(args, "options_s", 0) else [])
+
+
+OPTIONS = (("unfiltered", dict(pair_filter=False)), ("pair_filter", {}),
+           ("pair_filter+rest_stop", dict(rest_stop=True)))
+
+
+def options_step(size: int, tiny: bool, json_path: Path) -> int:
+    """Step 5: the warp backend with and without its options (OPTIONS) on the same worlds."""
+    import numpy as np
+
+    from f2f_jax import config
+    from f2f_jax.bench.agreement import builtin_triples
+    from f2f_jax.geometry.coacd_pieces import object_hulls
+    from f2f_jax.geometry.finger_tiling import finger_hulls
+    from f2f_jax.sim import warp_batch
+    from f2f_jax.sim.scene import build_model
+
+    cfg = config.with_sim_preset(config.get("tiny" if tiny else "default"), "fast")
+    pool, triples = builtin_triples(2 if tiny else 24, 0, cfg)
+    models = [build_model(object_hulls(pool[t["object"]], cfg), finger_hulls(t["left"], cfg),
+                          finger_hulls(t["right"], cfg), cfg, pad_collides=True) for t in triples]
+    chosen = [models[i] for i in np.arange(size) % len(models)]
+    out = {"batch": size, "distinct": len(models), "preset": "fast", "rows": []}
+    first = None
+    for label, options in OPTIONS:
+        start = time.perf_counter()
+        res = warp_batch.WarpGraspSimulator(cfg, **options).run(chosen)
+        run_s = time.perf_counter() - start - res["compile_seconds"]
+        first = res["outcome"] if first is None else first
+        row = dict(options=label, compile_s=res["compile_seconds"], run_s=run_s,
+                   evals_per_s=size / run_s, listed_pairs=res["listed_pairs"],
+                   mean_pairs=res["mean_pairs"], peak_pairs=res["peak_pairs"],
+                   steps=float(res["steps"].mean()), same_as_unfiltered=float(
+                       (res["outcome"] == first).mean()))
+        out["rows"].append(row)
+        print(json.dumps(row), flush=True)
+        json_path.write_text(json.dumps(out, indent=1))
+    return 0
 
 
 def summary(result: dict) -> list[str]:
@@ -133,6 +178,14 @@ def summary(result: dict) -> list[str]:
     for r in (result.get("mjx") or {}).get("rows", []):
         lines.append(f"MJX, {r['vertices']} vertices, {r['batch']} candidates: "
                      f"{r['env_steps_per_s']:,.0f} env steps/s (compile {r['compile_s']:.1f} s)")
+    opt = result.get("options") or {}
+    if opt.get("rows"):
+        lines += [f"warp options, {opt['batch']} candidates ({opt['distinct']} distinct, {opt['preset']}):",
+                  "| options | pairs listed/world | to narrow phase/world (peak) | evaluations/s | "
+                  "steps/candidate | same outcomes |", "|---|---|---|---|---|---|"]
+        lines += [f"| {r['options']} | {r['listed_pairs']:.0f} | {r['mean_pairs']:.1f} ({r['peak_pairs']:.0f}) "
+                  f"| {r['evals_per_s']:.2f} | {r['steps']:.0f} | {r['same_as_unfiltered']:.2%} |"
+                  for r in opt["rows"]]
     for r in (result.get("training") or {}).get("rows", []):
         lines.append(f"training {r['stage']}, batch {r['batch']}: {r['step_s']:.2f} s per step "
                      f"(compile + first {r['compile_s']:.1f} s)")
@@ -158,9 +211,15 @@ def main(argv=None) -> int:
     p.add_argument("--agreement-s", type=int, default=180, help="time allowed to step 2 (s)")
     p.add_argument("--mjx-s", type=int, default=60, help="time allowed to step 3 (s)")
     p.add_argument("--training-s", type=int, default=120, help="time allowed to step 4 (s)")
-    p.add_argument("--only", nargs="+", choices=["throughput", "agreement", "mjx", "training"],
+    p.add_argument("--options-s", type=int, default=120, help="time allowed to step 5 (s; 0 skips it)")
+    p.add_argument("--options-size", type=int, default=512, help="step 5's candidates (default 512)")
+    p.add_argument("--options-step", action="store_true", help=argparse.SUPPRESS)  # step 5 itself
+    p.add_argument("--json", type=Path, default=None, help=argparse.SUPPRESS)  # step 5's JSON
+    p.add_argument("--only", nargs="+", choices=["throughput", "agreement", "mjx", "training", "options"],
                    default=None, help="run only these steps")
     args = p.parse_args(argv)
+    if args.options_step:
+        return options_step(args.options_size, args.tiny, args.json or Path("options.json"))
     info = device_info()
     has_gpu = bool(info.get("nvidia_smi")) or (isinstance(info.get("warp"), list)
                                                and any(d.startswith("cuda") for d in info["warp"]))
@@ -184,7 +243,7 @@ def main(argv=None) -> int:
             try:
                 proc = subprocess.run([*command, "--json", str(out_json)], capture_output=True,
                                       text=True, timeout=limit,
-                                      env=warp_env if "warp" in " ".join(command) else env)
+                                      env=warp_env if "warp" in " ".join(command) or name == "options" else env)
                 rc, output = proc.returncode, proc.stdout + proc.stderr
             except subprocess.TimeoutExpired as exc:
                 rc = "timeout"

@@ -141,3 +141,95 @@ def test_evaluate_warp_maps_outcomes_to_feasible_candidates(wb, monkeypatch, sph
         evaluate([sphere_tsdf], [left], [right], cfg=tiny_cfg, backend="warp", object_xy=(0.01, 0))
     with pytest.raises(ValueError, match="executor='ray'"):
         evaluate([sphere_tsdf], [left], [right], cfg=tiny_cfg, backend="warp", executor="ray")
+
+
+def test_pair_filter_keeps_every_pair_that_touches(wb, sphere_models, tiny_cfg):
+    """The pair list leaves out only pairs that never touch: at openings across the jaws' whole
+    range (fingers crossing), every contact plain MuJoCo finds between real pieces of the two
+    jaws is a pair the list keeps; placeholder slots of every world drop out too."""
+    import itertools
+
+    import mujoco
+
+    from f2f_jax.sim.scene import scene_ids
+
+    ids = scene_ids(sphere_models[0])
+    table = wb.MeshTable.of(sphere_models)
+    fields = wb.candidate_fields(sphere_models, table)
+    lists = []
+    for c, m in enumerate(sphere_models):
+        ch = wb.WorldChunk(m, table, {k: v[[c]] for k, v in fields.items()}, "cpu", ids.finger_geoms)
+        kept = {tuple(p) for p in ch.m.nxn_geom_pair_filtered.numpy()}
+        lists.append(kept)
+        assert ch.listed_pairs == len(kept) < ch.all_pairs
+        real = np.asarray(m.geom_rgba)[:, 3] > 0
+        jaw = {int(g): side for side in (0, 1) for g in ids.finger_geoms[side]}
+        d, seen = mujoco.MjData(m), 0
+        d.qpos[ids.object_qpos + 2] = 1.0  # the object out of the way
+        low, high = ids.jaw_range[0]
+        for q in itertools.product(np.linspace(low - 0.005, 0.05, 12), repeat=2):
+            d.qpos[ids.jaw_qpos] = q
+            mujoco.mj_forward(m, d)
+            for a, b in (sorted(c.geom) for c in d.contact[: d.ncon]):
+                if real[a] and real[b] and {jaw.get(a), jaw.get(b)} == {0, 1}:
+                    seen += 1
+                    assert (a, b) in kept
+        assert seen > 0  # the fingers do meet when they cross
+    both = wb.WorldChunk(sphere_models[0], table, fields, "cpu", ids.finger_geoms)
+    assert {tuple(p) for p in both.m.nxn_geom_pair_filtered.numpy()} == lists[0] | lists[1]
+
+
+def test_pair_filter_leaves_the_physics_bit_for_bit(wb, sphere_models, tiny_cfg):
+    """The grasp program (settle, approach, close, lift, hold) of the pads and the imprint ends
+    in the same state, bit for bit, with and without the pair filter; fewer pairs are tested."""
+    out, sims = [], []
+    for pair_filter in (False, True):
+        sim = wb.WarpGraspSimulator(tiny_cfg, devices=["cpu"], pair_filter=pair_filter)
+        table = sim.prepare(sphere_models)
+        which = np.array([0, 1])
+        out.append(sim._grasp(sphere_models, table, which, np.zeros(2), None))
+        sims.append(sim)
+    for k in ("qpos", "qvel", "act", "qacc_warmstart"):
+        np.testing.assert_array_equal(out[0][3][k], out[1][3][k])
+    assert out[0][0].tolist() == out[1][0].tolist() == [False, True]
+    listed = [s.pair_sums[2] / s.pair_sums[1] for s in sims]
+    assert listed[1] < listed[0] and sims[0].pair_sums[0] >= sims[1].pair_sums[0]
+
+
+@pytest.mark.slow
+def test_rest_stop_ends_resting_phases_early_on_the_clear_cases(wb, sphere_models, tiny_cfg):
+    """rest_stop (off by default) under the fast preset: the pads still drop the sphere, the
+    imprint still holds it through every trial, in fewer steps; the reference preset (rest_speed
+    0) and the default take every phase in full."""
+    from f2f_jax.config import with_sim_preset
+
+    fast = with_sim_preset(tiny_cfg, "fast")
+    full = wb.WarpGraspSimulator(fast, devices=["cpu"])
+    assert not full.rest_stop
+    res = wb.WarpGraspSimulator(fast, devices=["cpu"], rest_stop=True).run(sphere_models)
+    assert res["outcome"][0].sum() == 0 and res["outcome"][1].sum() == 11
+    assert (res["steps"] < [full.grasp_steps, 7 * full.grasp_steps + 4 * full.push_steps]).all()
+    ref = wb.WarpGraspSimulator(with_sim_preset(tiny_cfg, "reference"), devices=["cpu"],
+                                rest_stop=True)
+    table = ref.prepare(sphere_models[:1])
+    ref._grasp(sphere_models[:1], table, np.array([0]), np.zeros(1), None)
+    assert ref.last_steps == ref.grasp_steps
+
+
+@pytest.mark.slow
+def test_pair_filter_keeps_every_outcome_of_mixed_triples(wb, tiny_cfg):
+    """All 11 trials of three builtin triples (imprint, WSG50, cut) tiled to four worlds: the
+    same outcomes, steps and failures with and without the pair filter."""
+    from f2f_jax.bench.agreement import builtin_triples
+
+    pool, triples = builtin_triples(3, 0, tiny_cfg)
+    models = [build_model(object_hulls(pool[t["object"]], tiny_cfg), finger_hulls(t["left"], tiny_cfg),
+                          finger_hulls(t["right"], tiny_cfg), tiny_cfg, pad_collides=True)
+              for t in triples]
+    models.append(models[0])
+    runs = [wb.WarpGraspSimulator(tiny_cfg, devices=["cpu"], pair_filter=f).run(models)
+            for f in (False, True)]
+    for k in ("outcome", "steps", "unstable"):
+        np.testing.assert_array_equal(runs[0][k], runs[1][k])
+    assert runs[0]["outcome"][0].sum() > 0  # the imprint holds: pushes and turned grasps ran
+    assert runs[1]["listed_pairs"] < runs[0]["listed_pairs"]

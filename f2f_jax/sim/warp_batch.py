@@ -20,7 +20,14 @@ bodies, joints and geom slots) and runs the trials as worlds of one MuJoCo Warp 
   held grasp's saved state; six turned grasps; health checks every ``CHECK_EVERY`` steps.
   Like the MJX backend, every phase runs to its full length whatever the preset (all worlds
   step in lock-step: the ``reference`` preset's behaviour), and the lift command follows the
-  profile's exact chord each step.
+  profile's exact chord each step.  ``rest_stop=True`` (off by default: it changes physics)
+  ends the settle, close, hold and post-push hold phases of a round once every world has been
+  at rest (or, in a hold, dropped below the success height) as the CPU presets' early exits
+  rule, when the preset's ``rest_speed`` is above 0.
+* **Pairs that cannot touch are left out** of the broad phase's list (``pair_filter``, on by
+  default; ``warp_worlds.reachable_pairs``): pieces of the two jaws whose extents across the
+  closing axis never overlap, and slots that are placeholders in every world of a chunk.  Same
+  contacts, so the same physics.
 * **Failed worlds stop costing work by compaction**: the grasp at yaw 0 runs for every
   candidate; only candidates that held are simulated further, as 10 worlds each (4 pushes,
   6 turned grasps), in new, smaller batches.
@@ -45,7 +52,12 @@ import numpy as np
 
 from f2f_jax.config import Config
 from f2f_jax.sim.opening import BACKOFF_ROUNDS, JawOpener
-from f2f_jax.sim.protocol import CHECK_EVERY, SPIN_RADIUS, lift_targets
+from f2f_jax.sim.protocol import (
+    CHECK_EVERY,
+    REST_CHECK_EVERY,
+    SPIN_RADIUS,
+    lift_targets,
+)
 from f2f_jax.sim.scene import scene_ids
 from f2f_jax.sim.warp_worlds import (
     CONTACTS_PER_WORLD,
@@ -78,18 +90,23 @@ class WarpGraspSimulator:
     """The 11 trials of candidate models (one layout) as MuJoCo Warp worlds.
 
     cfg: Config; every phase runs to its full length (``rest_speed`` is not used: lock-step
-    worlds cannot end phases early one by one), as in the ``reference`` preset.
+    worlds cannot end phases early one by one), as in the ``reference`` preset, unless
+    ``rest_stop`` ends a round's phase once all its worlds rest.
     devices: warp devices to spread worlds over (default every local GPU, else the CPU);
     worlds: worlds per chunk (default ``default_worlds``); threads: host threads for the
-    openings (default: Python's pool default).
+    openings (default: Python's pool default).  pair_filter: leave pairs that cannot touch
+    out of the broad phase (same outcomes); rest_stop: end a round's resting phases early (see
+    the module's docstring; other outcomes than without).
     """
 
     def __init__(self, cfg: Config, *, devices: list[str] | None = None, worlds: int | None = None,
-                 threads: int | None = None, approach: str = "device"):
+                 threads: int | None = None, approach: str = "device",
+                 pair_filter: bool = True, rest_stop: bool = False):
         if approach not in APPROACHES:
             raise ValueError(f"approach {approach!r}: one of {APPROACHES}")
         self.cfg = cfg
         self.approach = approach
+        self.pair_filter, self.rest_stop = pair_filter, rest_stop
         self._device_consts: dict = {}
         self.devices = devices or local_devices()
         self.worlds = worlds
@@ -108,6 +125,7 @@ class WarpGraspSimulator:
         self.overflowed = 0  # worlds failed because a buffer overflowed (should stay 0)
         self.peak_pairs = 0.0  # most broad-phase pairs per world in a chunk, for sizing
         self.peak_rows = 0  # most constraint rows in one world
+        self.pair_sums = np.zeros(3)  # broad-phase pairs at checks, world-checks, listed x worlds
 
     # ---------------------------------------------------------------- rounds
     def _chunks(self, models, table, which):
@@ -122,13 +140,21 @@ class WarpGraspSimulator:
                     break
                 stop = min(n, start + size)
                 fields = {k: v[which[start:stop]] for k, v in self.fields.items()}
-                out.append((slice(start, stop), WorldChunk(models[0], table, fields, dev)))
+                jaws = self.ids.finger_geoms if self.pair_filter else None
+                out.append((slice(start, stop), WorldChunk(models[0], table, fields, dev, jaws)))
                 start = stop
         return out
 
-    def _steps(self, chunks, n, healthy_state, before_step=None):
+    def _steps(self, chunks, n, healthy_state, before_step=None, *, until_rest=False,
+               below=None) -> int:
         """Step every chunk ``n`` times (lock-step), checking health every CHECK_EVERY steps;
-        ``before_step(k)`` may change controls first."""
+        ``before_step(k)`` may change controls first.  With ``rest_stop``, ``until_rest`` and a
+        preset's rest_speed, stop once every world is done (``_rested``); below: [W] heights
+        under which a world's object has dropped (done).  Returns the steps taken."""
+        s = self.cfg.sim
+        rest = self.rest_stop and until_rest and s.rest_speed > 0
+        since = np.full(len(healthy_state), -1)  # the first step of each world's rest window
+        done = np.zeros(len(healthy_state), bool)
         t = time.perf_counter()
         for k in range(n):
             if before_step is not None:
@@ -142,29 +168,58 @@ class WarpGraspSimulator:
                     _WARM_DEVICES.add(ch.device)
                 self.compile_seconds += time.perf_counter() - t
                 t = time.perf_counter()
-            if (k + 1) % CHECK_EVERY == 0 or k == n - 1:
+            stop = (rest and (k + 1) % REST_CHECK_EVERY == 0
+                    and self._rested(chunks, k + 1, since, done, healthy_state, below))
+            if (k + 1) % CHECK_EVERY == 0 or k == n - 1 or stop:
                 self._check(chunks, healthy_state)
+            if stop:
+                n = k + 1
+                break
         for _, ch in chunks:
             wp.synchronize_device(ch.device)
         self.step_seconds += time.perf_counter() - t
         self.world_steps += n * sum(ch.nworld for _, ch in chunks)
+        return n
+
+    def _speeds(self, ch) -> np.ndarray:
+        """[W] the fastest motion in each world (``protocol.GraspRunner.speed``); NaN if not
+        finite."""
+        ids, qvel = self.ids, ch.get("qvel")
+        v = qvel[:, ids.object_dof: ids.object_dof + 6]
+        return np.maximum.reduce([np.linalg.norm(v[:, :3], axis=1),
+                                  np.linalg.norm(v[:, 3:], axis=1) * SPIN_RADIUS,
+                                  np.abs(qvel[:, self._speed_dofs]).max(1)])
+
+    def _rested(self, chunks, step, since, done, bad, below) -> bool:
+        """The CPU presets' rest rule, world by world, at step ``step`` of a phase: done[w] once
+        its speed stayed below rest_speed for rest_time (sampled every REST_CHECK_EVERY steps),
+        or its object is under below[w]; True when every world is done or failed."""
+        s = self.cfg.sim
+        for sl, ch in chunks:
+            moving = ~(self._speeds(ch) < s.rest_speed)
+            w = np.arange(sl.start, sl.stop)
+            since[w[moving]] = -1
+            since[w[~moving & (since[sl] < 0)]] = step
+            done[sl] |= ~moving & (since[sl] >= 0) & (step - since[sl] >= s.steps(s.rest_time))
+            if below is not None:
+                done[sl] |= ch.get("xipos")[:, self.ids.object_body, 2] < below[sl]
+        return bool((done | bad).all())
 
     def _check(self, chunks, bad):
         """bad[w] |= the state is not finite or anything moves faster than max_speed."""
-        s, ids = self.cfg.sim, self.ids
+        s = self.cfg.sim
         for sl, ch in chunks:
             qpos, qvel = ch.get("qpos"), ch.get("qvel")
-            v = qvel[:, ids.object_dof: ids.object_dof + 6]
-            speed = np.maximum.reduce([np.linalg.norm(v[:, :3], axis=1),
-                                       np.linalg.norm(v[:, 3:], axis=1) * SPIN_RADIUS,
-                                       np.abs(qvel[:, self._speed_dofs]).max(1)])
+            speed = self._speeds(ch)
             finite = np.isfinite(qpos).all(1) & np.isfinite(qvel).all(1)
             # a world whose pairs, contacts or constraint rows overflowed their buffers lost some
             # of them: its physics is wrong, so it fails like an exploding one, and is counted
             overflow = (ch.get("overflow") & LOST_OVERFLOWS) != 0
             self.overflowed += int(np.count_nonzero(overflow & ~bad[sl]))
             bad[sl] |= ~finite | ~(speed <= s.max_speed) | overflow
-            self.peak_pairs = max(self.peak_pairs, int(ch.get("ncollision")[0]) / ch.nworld)
+            pairs = int(ch.get("ncollision")[0])
+            self.peak_pairs = max(self.peak_pairs, pairs / ch.nworld)
+            self.pair_sums += (pairs, ch.nworld, ch.listed_pairs * ch.nworld)
             self.peak_rows = max(self.peak_rows, int(ch.get("nefc").max()))
 
     def _held(self, chunks, z_start):
@@ -232,7 +287,7 @@ class WarpGraspSimulator:
             ch.set_state(qpos=qpos[sl], qvel=np.zeros((sl.stop - sl.start, models[0].nv)),
                          ctrl=ctrl[sl])
         bad = np.zeros(n, bool)
-        self._steps(chunks, self.n_settle, bad)
+        taken = self._steps(chunks, self.n_settle, bad, until_rest=True)
         # approach: JawOpener's rule (on the device, or JawOpener itself), from each world's
         # settled pose
         t = time.perf_counter()
@@ -259,16 +314,18 @@ class WarpGraspSimulator:
             c[:, ids.grip_act] = low
             ch.set_state(qpos=q, qvel=qvel, ctrl=c)
         self.approach_seconds += time.perf_counter() - t
-        self._steps(chunks, self.n_close, bad)
+        taken += self._steps(chunks, self.n_close, bad, until_rest=True)
 
         def lift(k):
             for _, ch in chunks:
                 ch.set_column("ctrl", ids.lift_act, self.lift_ctrl[k])
 
-        self._steps(chunks, len(self.lift_ctrl), bad, lift)
+        taken += self._steps(chunks, len(self.lift_ctrl), bad, lift)
         for _, ch in chunks:
             ch.set_column("ctrl", ids.lift_act, 0.0)
-        self._steps(chunks, self.n_hold, bad)
+        below = z_start + s.success_min_height
+        taken += self._steps(chunks, self.n_hold, bad, until_rest=True, below=below)
+        self.last_steps = taken
         held, rise = self._held(chunks, z_start)
         state = {k: np.concatenate([ch.get(k) for _, ch in chunks])
                  for k in ("qpos", "qvel", "act", "ctrl", "qacc_warmstart")}
@@ -285,10 +342,12 @@ class WarpGraspSimulator:
         for sl, ch in chunks:
             ch.set_state(**{k: v[sl] for k, v in state.items()}, xfrc_applied=force[sl])
         bad = np.zeros(n, bool)
-        self._steps(chunks, self.n_push, bad)
+        taken = self._steps(chunks, self.n_push, bad)
         for sl, ch in chunks:
             ch.set_state(xfrc_applied=np.zeros((sl.stop - sl.start, nbody, 6)))
-        self._steps(chunks, self.n_push_hold, bad)
+        below = z_start + s.success_min_height
+        taken += self._steps(chunks, self.n_push_hold, bad, until_rest=True, below=below)
+        self.last_steps = taken
         held, rise = self._held(chunks, z_start)
         return held & ~bad, rise, bad
 
@@ -314,7 +373,9 @@ class WarpGraspSimulator:
         compile_seconds, step_seconds (stepping after the first step), world_steps,
         approach_seconds (computing the openings), devices,
         overflowed (worlds failed by a full buffer: a warning is logged), peak_pairs (broad-phase
-        pairs per world, most in one chunk), peak_rows)."""
+        pairs per world, most in one chunk), mean_pairs (the same, mean over health checks: the
+        pairs that reach the narrow phase), listed_pairs (pairs the broad phase tests per world,
+        mean over the checks), peak_rows)."""
         table = self.prepare(models)
         s = self.cfg.sim
         host: dict = {}
@@ -333,7 +394,7 @@ class WarpGraspSimulator:
         ok, _, bad, state, z_start = self._grasp(models, table, every, np.zeros(n), openers)
         outcome[:, 0] = ok
         unstable += bad
-        steps += self.grasp_steps
+        steps += self.last_steps
         held = np.nonzero(ok)[0]
         if len(held) and n_push:
             idx = np.repeat(held, n_push)
@@ -342,14 +403,14 @@ class WarpGraspSimulator:
             pok, _, pbad = self._push(models, table, idx, st, z_start[idx], dirs)
             outcome[held, 1: 1 + n_push] = pok.reshape(len(held), n_push)
             unstable[held] += pbad.reshape(len(held), n_push).sum(1)
-            steps[held] += n_push * self.push_steps
+            steps[held] += n_push * self.last_steps
         if len(held) and n_rob:  # turned grasps
             idx = np.repeat(held, n_rob)
             yaws = np.tile(np.deg2rad(np.asarray(s.robustness_angles_deg, np.float64)), len(held))
             rok, _, rbad, _, _ = self._grasp(models, table, idx, yaws, openers)
             outcome[held, 1 + n_push:] = rok.reshape(len(held), n_rob)
             unstable[held] += rbad.reshape(len(held), n_rob).sum(1)
-            steps[held] += n_rob * self.grasp_steps
+            steps[held] += n_rob * self.last_steps
         if self.overflowed:
             log.warning("warp backend: %d worlds overflowed a buffer and were failed (broad-phase "
                         "pairs per world up to %.0f of %d slots)", self.overflowed,
@@ -359,6 +420,8 @@ class WarpGraspSimulator:
                     world_steps=self.world_steps, approach_seconds=self.approach_seconds,
                     devices=list(self.devices),
                     overflowed=self.overflowed, peak_pairs=self.peak_pairs,
+                    mean_pairs=self.pair_sums[0] / max(self.pair_sums[1], 1),
+                    listed_pairs=self.pair_sums[2] / max(self.pair_sums[1], 1),
                     peak_rows=self.peak_rows)
 
 

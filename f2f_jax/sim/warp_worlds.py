@@ -229,6 +229,74 @@ def candidate_fields(models: list[mujoco.MjModel], table: MeshTable) -> dict:
     return {k: np.stack([row[k] for row in per]) for k in WORLD_FIELDS}
 
 
+# Gap (m) below which two pieces on opposite jaws count as able to meet across the jaws' shared
+# (y, z): rounding of float32 poses is ~1e-8 m, so 0.1 mm keeps every pair that could touch.
+PAIR_SLACK = 1.0e-4
+
+
+def reachable_pairs(template: mujoco.MjModel, table: MeshTable, fields: dict, jaws, pairs,
+                    slack: float = PAIR_SLACK) -> np.ndarray:
+    """[P] bool: which geom pairs [P, 2] of the model's pair list can make a contact in some world
+    of ``fields`` (rows of ``candidate_fields``).  Dropped are pairs with a mesh geom that is a
+    placeholder (geom_dataid -1) in every world, which the broad phase already skips world by
+    world, and pairs of one piece on each jaw (``jaws``: two arrays of geom ids) whose extents
+    across the closing axis are apart by more than ``slack`` plus their margins in every world.
+    The jaws' bodies share a parent and slide along its x axis without turning, so a piece's
+    (y, z) extent in the parent's frame is the same at every opening: two convex pieces whose
+    (y, z) extents never overlap never touch, however far the jaws travel.  Nothing else is
+    dropped: the object is free, and the floor meets only the object."""
+    ids = np.asarray(fields["geom_dataid"])  # [W, G]
+    present = (ids >= 0).any(0) | (np.asarray(template.geom_type) != mujoco.mjtGeom.mjGEOM_MESH)
+    keep = present[pairs[:, 0]] & present[pairs[:, 1]]
+    bodies = [int(template.geom_bodyid[g[0]]) for g in jaws if len(g)]
+    if len(bodies) != 2 or not _slides_along_x(template, bodies):
+        return keep
+    lo, hi = _jaw_extents(table, fields, np.concatenate(jaws), bodies, template)
+    side = np.full(template.ngeom, -1)
+    side[jaws[0]], side[jaws[1]] = 0, 1
+    a, b = pairs[:, 0], pairs[:, 1]
+    across = (side[a] >= 0) & (side[b] >= 0) & (side[a] != side[b])
+    gap = np.maximum(lo[:, a] - hi[:, b], lo[:, b] - hi[:, a]).max(-1)  # [C, P], the larger axis
+    margin = (np.asarray(template.geom_margin) + np.asarray(template.geom_gap))[pairs].sum(1)
+    meets = (gap <= slack + margin).any(0)
+    return keep & (~across | meets)
+
+
+def _slides_along_x(m: mujoco.MjModel, bodies) -> bool:
+    """Both bodies children of one body, unturned in it, each moved by one slide along x."""
+    if m.body_parentid[bodies[0]] != m.body_parentid[bodies[1]]:
+        return False
+    for b in bodies:
+        j = int(m.body_jntadr[b])
+        if (m.body_jntnum[b] != 1 or m.jnt_type[j] != mujoco.mjtJoint.mjJNT_SLIDE
+                or not np.allclose(np.abs(m.jnt_axis[j]), [1, 0, 0])
+                or not np.allclose(m.body_quat[b], [1, 0, 0, 0])):
+            return False
+    return True
+
+
+def _jaw_extents(table: MeshTable, fields: dict, geoms, bodies, m) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) [C, G, 2]: the (y, z) extent of geoms ``geoms`` (mesh pieces on the jaws) in the
+    jaws' parent frame, per distinct candidate among the worlds of ``fields`` (worlds of one
+    candidate share their meshes); other geoms get (+inf, -inf), which meet nothing."""
+    _, rows = np.unique(fields["geom_dataid"], axis=0, return_index=True)
+    ngeom = fields["geom_dataid"].shape[1]
+    lo, hi = np.full((len(rows), ngeom, 2), np.inf), np.full((len(rows), ngeom, 2), -np.inf)
+    f = table.fields
+    rot = np.empty(9)
+    for c, w in enumerate(rows):
+        for g in geoms:
+            mesh, body = int(fields["geom_dataid"][w, g]), int(m.geom_bodyid[g])
+            if mesh < 0 or body not in bodies:
+                continue
+            start = f["mesh_vertadr"][mesh]
+            v = f["mesh_vert"][start: start + f["mesh_vertnum"][mesh]].astype(np.float64)
+            mujoco.mju_quat2Mat(rot, np.asarray(fields["geom_quat"][w, g], np.float64))
+            p = v @ rot.reshape(3, 3).T + fields["geom_pos"][w, g] + fields["body_pos"][w, body]
+            lo[c, g], hi[c, g] = p[:, 1:].min(0), p[:, 1:].max(0)
+    return lo, hi
+
+
 def finger_object_pairs(geom: np.ndarray, fingers, obj) -> np.ndarray:
     """[C] bool: contacts (geom pairs [C, 2]) between one of ``fingers`` and one of ``obj``."""
     return ((np.isin(geom[:, 0], fingers) & np.isin(geom[:, 1], obj))
@@ -238,7 +306,10 @@ def finger_object_pairs(geom: np.ndarray, fingers, obj) -> np.ndarray:
 class WorldChunk:
     """One device's share of a round: its model, data and host-side view of the worlds."""
 
-    def __init__(self, template: mujoco.MjModel, table: MeshTable, fields: dict, device: str):
+    def __init__(self, template: mujoco.MjModel, table: MeshTable, fields: dict, device: str,
+                 jaws=None):
+        """jaws: the geom ids of each jaw's pieces, to leave out of the pair list the pairs that
+        cannot touch in any of these worlds (``reachable_pairs``); None keeps MuJoCo Warp's list."""
         nworld = len(fields["qpos0"])
         self.device, self.nworld = device, nworld
         self._graph, self._steps_taken = None, 0
@@ -254,12 +325,32 @@ class WorldChunk:
             for k, v in table.sizes.items():
                 setattr(m, k, v)
             self.m = m
+            self.listed_pairs = self.all_pairs = len(m.nxn_geom_pair_filtered)
+            if jaws is not None:
+                self._drop_pairs(template, table, fields, jaws)
             self.d = mjw.put_data(template, mujoco.MjData(template), nworld=nworld,
                                   nconmax=CONTACTS_PER_WORLD, njmax=ROWS_PER_WORLD)
             self.planes = wp.array(table.planes.astype(np.float32), dtype=wp.vec4)
             self.nplane = wp.array(table.fields["mesh_polynum"].astype(np.int32), dtype=int)
             self.finger_xpos = self.finger_xmat = None
             self._reach = None  # (reach, the fingers' margins for finger_distance's pass)
+
+    def _drop_pairs(self, template, table, fields, jaws):
+        """Leave the pairs that cannot touch (``reachable_pairs``) out of the broad phase's list
+        (and mark them excluded in the full table, which the sweep-and-prune broad phase reads)."""
+        m = self.m
+        pairs = m.nxn_geom_pair_filtered.numpy()
+        keep = reachable_pairs(template, table, fields, jaws, pairs)
+        if keep.all():
+            return
+        pairid = m.nxn_pairid_filtered.numpy()
+        m.nxn_geom_pair_filtered = wp.array(pairs[keep], dtype=wp.vec2i)
+        m.nxn_pairid_filtered = wp.array(pairid[keep], dtype=wp.vec2i)
+        full = m.nxn_pairid.numpy()
+        i, j, n = pairs[~keep, 0], pairs[~keep, 1], template.ngeom
+        full[(i * (2 * n - i - 3)) // 2 + j - 1, 0] = -2  # i < j: the upper triangle's index
+        m.nxn_pairid = wp.array(full, dtype=wp.vec2i)
+        self.listed_pairs = int(keep.sum())
 
     def kinematics(self):
         """Positions of every body and geom for the current qpos (a step leaves those of the
