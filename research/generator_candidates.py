@@ -39,7 +39,6 @@ import time
 
 from f2f_jax import tables as E
 from f2f_jax.cli import evaluate as ev
-from f2f_jax.cli import reproducible, sim_options
 from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
 from f2f_jax.tables import rows as R
@@ -137,13 +136,8 @@ def main(argv=None) -> int:
         p.error("--fitness-ranking K needs K >= 2 candidates to rank")
     if args.neighbourhood is not None and args.neighbourhood < 1:
         p.error("--neighbourhood K needs K >= 1")
-    error, extras = ev.check_run_arguments(args)
-    if error:
-        p.error(error)
-    reproducible.reproducible_xla(args.xla_threads)
     try:
-        sim_options.executor_from_cli(args)
-        setup = ev.Setup(args, say=_say)
+        setup, extras = ev.start_study(args, say=_say)
     except (F2FError, ValueError) as exc:
         p.error(str(exc))
     start = time.perf_counter()

@@ -30,7 +30,6 @@ import numpy as np
 
 from f2f_jax import tables as E
 from f2f_jax.cli import evaluate as ev
-from f2f_jax.cli import reproducible, sim_options
 from f2f_jax.designer import printed_copies
 from f2f_jax.errors import F2FError
 from f2f_jax.fileio import atomic_path
@@ -81,13 +80,8 @@ def main(argv=None) -> int:
         p.error("--tolerance MM needs a finite MM > 0 (the moving field's standard deviation, mm)")
     if args.copies < 1:
         p.error("--copies J needs J >= 1")
-    error, extras = ev.check_run_arguments(args)
-    if error:
-        p.error(error)
-    reproducible.reproducible_xla(args.xla_threads)
     try:
-        sim_options.executor_from_cli(args)
-        setup = ev.Setup(args, say=_say)
+        setup, extras = ev.start_study(args, say=_say)
     except (F2FError, ValueError) as exc:
         p.error(str(exc))
     start = time.perf_counter()

@@ -152,6 +152,18 @@ def _check(args) -> tuple[str | None, list[int], list[tuple[str, Path]]]:
     return error, tables, extras
 
 
+def start_study(args, say=_say) -> tuple["Setup", list[tuple[str, Path]]]:
+    """What a study over a run's rows does before it simulates (``research/``'s scripts take
+    evaluate's flags): the run arguments checked, the XLA flags set, the executor started and the
+    objects set up.  Returns (Setup, extras); raises ValueError or F2FError with the message."""
+    error, extras = check_run_arguments(args)
+    if error:
+        raise ValueError(error)
+    reproducible.reproducible_xla(args.xla_threads)  # before JAX computes: the same designs everywhere
+    sim_options.executor_from_cli(args)
+    return Setup(args, say=say), extras
+
+
 class Setup:
     """What an evaluation of ``add_run_arguments``' flags works on: config, output folder,
     objects (prepared: hulls made, unusable ones dropped), their names and source, and the step
