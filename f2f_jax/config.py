@@ -250,6 +250,25 @@ class TrainConfig:
     # in the run's imprint_objects/.
     imprint_objects: int = 0
     eval_objects: int = 64  # held-out objects scored after cycle 0 and after the last cycle
+    # --- what teaches the generator in the cycles (``train.teacher``, docs/learning.md) ---
+    # "fitness": the paper's co-training against the fitness net.  "simulator": expert iteration
+    # (``train/teacher.py``): each cycle simulates ``teacher_candidates`` designs of every teacher
+    # object (the generator's own and its height-noise candidates; in the first cycle also the
+    # imprint and its two variants), and the generator is regressed onto each object's
+    # best-simulated pair so far (ties go to the imprint).  "imprint": its control, the same
+    # cycles' steps on the same objects' imprints, nothing simulated.
+    teacher: str = "fitness"
+    # The teacher objects: the run's training objects and built-in objects n_objects ..
+    # n_objects + teacher_objects - 1 of seed teacher_seed's stream (seed 0's pieces ship with
+    # the package up to object 639), never one of the run's held-out objects.
+    teacher_objects: int = 0
+    teacher_seed: int = 0
+    teacher_candidates: int = 4  # designs per teacher object and cycle, the generator's own first
+    teacher_epochs: int = 4  # generator (and fitness-net) epochs per cycle on the teacher's targets
+    teacher_chunk: int = 64  # objects simulated per store chunk: a kill loses at most one chunk
+    # Teacher objects whose rows the fitness net does not train on: its within-object ranking is
+    # measured on their candidates, each cycle (the teacher's generator trains on every object).
+    teacher_fn_holdout: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -349,7 +368,20 @@ def workstation() -> Config:
     )
 
 
-CONFIGS = {"tiny": tiny, "default": default, "paper": paper, "workstation": workstation}
+def teacher() -> Config:
+    """The default's nets and pretraining, with the simulator as the generator's teacher instead
+    of the fitness net (``train.teacher``): 3 cycles over 51 + 236 teacher objects (builtin 64-299
+    of seed 0, whose pieces ship with the package), 4 designs of each a cycle and the imprint
+    variants in the first: ~4,300 simulations (docs/learning.md).  Its control is ``--set
+    train.teacher=imprint``; both can start from a default run's pretraining (``--from-pretrained``)."""
+    base = default()
+    return base.replace(train=dataclasses.replace(
+        base.train, teacher="simulator", cycles=3, teacher_objects=236, teacher_candidates=4,
+        teacher_epochs=1))
+
+
+CONFIGS = {"tiny": tiny, "default": default, "paper": paper, "workstation": workstation,
+           "teacher": teacher}
 
 
 def held_out_count(n: int, test_fraction: float) -> int:

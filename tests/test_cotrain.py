@@ -317,3 +317,74 @@ def test_evaluate_compares_a_run_with_its_cycle0_generator_paired(uninterrupted,
                      "--tables", "1", "--no-randemb", "--quiet", "--out", str(tmp_path / "pre")]) == 0
     pre = json.loads((tmp_path / "pre" / "results.json").read_text())["table1"]["outcomes"]
     assert "ImpGN" in pre and "Fit2Form" not in pre
+
+
+def test_simulator_teaches_the_generator_and_a_killed_cycle_loses_nothing(uninterrupted, tmp_path):
+    """train.teacher=simulator from the whole run's pretraining: cycle 1 killed while its second
+    chunk of teacher designs simulates, then rerun, keeps the first chunk and stores every chunk
+    once; the generator's loss to its targets (each object's best-simulated pair) falls; the imprint control simulates nothing and takes the same steps."""
+    import dataclasses
+
+    from f2f_jax.dataset.store import GraspStore
+    from f2f_jax.train.run_data import read_rows
+    from f2f_jax.train.teacher import IMPRINT, best_rows, teacher_set, teacher_targets
+
+    src, _ = uninterrupted
+    tiny = config.tiny()
+    cfg = tiny.replace(train=dataclasses.replace(
+        tiny.train, teacher="simulator", teacher_objects=1, teacher_candidates=2, teacher_chunk=8,
+        teacher_epochs=2))
+
+    def fork(name, c=cfg):
+        return CoTrainRun.from_pretrained(tmp_path / name, src, c, config_name="tiny", progress=False)
+
+    run = fork("teach")
+    real, calls = run.simulate, []
+
+    def simulate_once(*args):
+        if calls:
+            raise KeyboardInterrupt  # a kill while the second chunk simulates
+        calls.append(1)
+        return real(*args)
+
+    run.simulate = simulate_once
+    with pytest.raises(KeyboardInterrupt):
+        run.run(2)
+    store = GraspStore(tmp_path / "teach" / "store")
+    assert "teacher-1-0" in store.done_keys() and "teacher-1-1" not in store.done_keys()
+    first = store.read(("outcome", "kind", "name"), start=len(store) - store.chunks()[-1].rows)
+
+    fork("teach").run(2)
+    store = GraspStore(tmp_path / "teach" / "store")
+    keys = [k for c in store.chunks() for k in c.keys if k.startswith("teacher")]
+    assert keys == ["teacher-1-0", "teacher-1-1", "teacher-2-0", "teacher-2-1"]  # 14 objects, 8 a chunk
+    rows = store.read(("cycle", "kind", "name", "outcome"))
+    c1, c2 = rows["cycle"] == 1, rows["cycle"] == 2
+    for k in first:  # the chunk simulated before the kill is kept as it was
+        np.testing.assert_array_equal(first[k], rows[k][c1][:len(first[k])])
+    names = sorted(set(rows["name"][c1]))
+    assert len(names) == 13 + 1  # the tiny run's 13 training objects and one more built-in object
+    assert not set(names) & set(json.loads((src / "objects" / "split.json").read_text())["test"])
+    assert (rows["kind"][c1] == IMPRINT).sum() == 14 and not (rows["kind"][c2] == IMPRINT).any()
+    assert (rows["kind"][c2] == "generator").sum() == 14 and c2.sum() == 14 * 2
+
+    # the targets are each object's best-simulated pair; the generator came closer to them
+    again = fork("teach")
+    st = again.start()
+    ts = teacher_set(again, st)
+    shared = read_rows(st.data.store, lambda cyc, k: 1 <= cyc <= 2, objects=(ts.objects, ts.names))
+    left, right, stats = teacher_targets(st, ts, shared)
+    best, passed, imprint = best_rows(shared, ts.names)
+    assert (passed >= imprint).all() and stats["target_trials"] >= stats["imprint_trials"]
+    summaries = [r for r in _log(tmp_path / "teach") if r.get("stage") == "cycle"]
+    assert [s["cycle"] for s in summaries] == [1, 2] and summaries[-1]["improved_objects"] == stats["improved_objects"]
+    # the generator's regression onto them (its pretraining loss, in training mode) falls
+    gn = [r["loss"] for r in _log(tmp_path / "teach") if r.get("stage") == "gn" and r.get("cycle", 0) >= 1]
+    assert len(gn) == 4 and gn[-1] < gn[0]
+
+    # the control: the same steps on the imprints, nothing simulated in its cycles
+    fork("control", cfg.replace(train=dataclasses.replace(cfg.train, teacher="imprint"))).run(2)
+    assert not (GraspStore(tmp_path / "control" / "store").read(("cycle",))["cycle"] >= 1).any()
+    steps = [[r["steps"] for r in _log(tmp_path / d) if r.get("stage") == "gn" and r.get("cycle", 0) >= 1]
+             for d in ("teach", "control")]
+    assert steps[0] == steps[1] and len(steps[0]) == 4

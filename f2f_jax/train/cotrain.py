@@ -21,7 +21,10 @@ where it stopped and ends with the same parameters as one that was never stopped
    balanced batches (half designs of every cycle so far, half the pretraining data) until its BCE
    < ``fn_target_loss`` (``min_epochs``..``max_epochs``) and train the generator against it until
    its loss < ``gn_target_loss``.  With ``cycle_candidates`` K > 1 each sampled object gets K
-   designs: the generator's own and K - 1 latent perturbations, all simulated.
+   designs: the generator's own and K - 1 latent perturbations, all simulated.  With
+   ``train.teacher`` "simulator" the cycles are expert iteration instead (``f2f_jax.train.teacher``:
+   the generator regressed onto each teacher object's best-simulated pair), with "imprint" its
+   control.
 
 The run's settings are fixed when it is made; what changes while it runs (its data, the nets'
 states, its checkpoints and how far they go) is one ``run_state.RunState``, made by ``run`` and
@@ -65,6 +68,7 @@ from f2f_jax.train.run_dir import (
     write_record,
 )
 from f2f_jax.train.run_state import NOTHING_DONE, STAGES, RunState
+from f2f_jax.train.teacher import check_teacher, run_teacher_cycle
 from f2f_jax.train.state import fresh_run_state, with_codec_of
 
 log = logging.getLogger(__name__)
@@ -82,6 +86,9 @@ def check_config(cfg: Config) -> None:
         raise ConfigError(f"train.gn_passes must be >= 1, got {t.gn_passes}")
     if t.imprint_objects < 0:
         raise ConfigError(f"train.imprint_objects must be >= 0, got {t.imprint_objects}")
+    problems = check_teacher(t)
+    if problems:
+        raise ConfigError("; ".join(problems))
     if t.objectives not in OBJECTIVES:
         retired = (" (co-training's imprint control was retired after commit dd4f091; its result is "
                    "in docs/learning.md)") if t.objectives == "imprint" else ""
@@ -371,11 +378,18 @@ class CoTrainRun:
         for c in range(1, cycles + 1):
             if st.done("cycle", 0, c):
                 continue
-            s = run_cycle(self, st, c)
+            if self.cfg.train.teacher == "fitness":
+                s = run_cycle(self, st, c)
+                line = (f"{s['designs']} designs, feasible {s['feasible']:.2f}, grasp {s['success'][0]:.2f}, "
+                        f"FN {s['fn_epochs']} / GN {s['gn_epochs']} epochs")
+            else:
+                s = run_teacher_cycle(self, st, c)
+                line = f"taught by the {s['teacher']}, {s['designs']} designs"
+                if "improved_objects" in s:
+                    line += (f", {s['improved_objects']} of {s['objects']} objects better than their "
+                             f"imprint, FN within-object Spearman {s['fn_spearman']}")
             if self.progress:
-                print(f"cycle {c}/{cycles}: {s['designs']} designs, feasible {s['feasible']:.2f}, "
-                      f"grasp {s['success'][0]:.2f}, FN {s['fn_epochs']} / GN {s['gn_epochs']} epochs, "
-                      f"{s['seconds']:.0f} s", flush=True)
+                print(f"cycle {c}/{cycles}: {line}, {s['seconds']:.0f} s", flush=True)
             self.plot()
         if cycles:
             evals.update(self._eval_record(st, f"cycle {cycles}", cycles))

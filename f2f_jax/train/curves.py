@@ -45,7 +45,8 @@ def plot_curves(run_dir) -> Path | None:
                 ax.plot([i for i, _ in enumerate(ho)], [h[2] for h in ho], "r.-", ms=3,
                         label="held-out (pretraining)")
                 ax.legend(fontsize=7)
-    cyc = sorted((r["cycle"], r) for r in recs if r["stage"] == "cycle")
+    # a run taught by the imprints simulates nothing in its cycles
+    cyc = sorted((r["cycle"], r) for r in recs if r["stage"] == "cycle" and "success" in r)
     ax = axes[3]
     if cyc:
         xs = [c for c, _ in cyc]

@@ -29,7 +29,9 @@ class RunState:
     ``state.fresh_run_state`` makes them), replaced after every epoch; position: (stage index in
     ``STAGES``, epoch, cycle) of the newest checkpoint, ``NOTHING_DONE`` before any; generated:
     (c, every design simulated in cycles 1..c), kept between cycles (``cycle.generated_rows``);
-    pairs: the generator's pretraining pairs, made on first use (``CoTrainRun.imprint_pairs``).
+    pairs: the generator's pretraining pairs, made on first use (``CoTrainRun.imprint_pairs``);
+    teacher: the teacher objects of a run taught by the simulator or the imprints
+    (``teacher.teacher_set``), made on first use.
     """
 
     data: RunData
@@ -39,6 +41,7 @@ class RunState:
     position: tuple[int, int, int] = NOTHING_DONE
     generated: tuple[int, dict[str, np.ndarray]] | None = None
     pairs: dict[str, np.ndarray] | None = None
+    teacher: object | None = None  # teacher.TeacherSet
 
     def done(self, stage: str, epoch: int = 0, cycle: int = 0) -> bool:
         """Whether the newest checkpoint is at or after (stage, epoch, cycle)."""
