@@ -4,6 +4,9 @@ can win only in MuJoCo).
 
     python benchmarks/design_judges.py --run-dir runs/cotrain --fresh 48 --seed 7 --out runs/judges
     python benchmarks/design_judges.py --fresh 8 --out /tmp/judges     # the shipped weights, 8 objects
+    python benchmarks/design_judges.py --run-dir runs/teacher --fresh 48 --seed 7 --out runs/judges-teacher \
+        --nets teacher=runs/teacher control=runs/teacher-control ImpGN=runs/teacher/pretrained
+                                      # several generators' own designs, each against the others
 
 Objects: the run's held-out objects (``--run-dir``) and ``--fresh N`` new built-in objects of
 ``--seed``.  Nets: the run's newest checkpoint, else the weights the package ships.  Modes:
@@ -13,6 +16,9 @@ Objects: the run's held-out objects (``--run-dir``) and ``--fresh N`` new built-
 - ``net 16``: 16 candidates ranked by the fitness net, ``verify=False``;
 - ``default``: ``design(obj)``, 16 candidates + the imprint pair and two variants, the best
   simulated in MuJoCo.
+
+``--nets NAME=DIR ...`` judges, instead of those modes, the own design (``net``) of each run's or
+checkpoint's generator, named NAME, and prints each one minus every later one, paired.
 
 Every pair is simulated by our ``fast`` preset (for ``default`` that is the outcome that chose
 it) and by the PyBullet peer (``numSubSteps`` 4, 1/960 s, the original's protocol otherwise) on the
@@ -90,12 +96,22 @@ def main(argv=None) -> int:
     p.add_argument("--run-dir", default=None, help="a run: its held-out objects and newest checkpoint")
     p.add_argument("--fresh", type=int, default=0, help="new built-in objects of --seed")
     p.add_argument("--seed", type=int, default=7)
-    p.add_argument("--modes", nargs="+", default=list(MODES), choices=list(MODES))
+    p.add_argument("--modes", nargs="+", default=None, choices=list(MODES),
+                   help="design() modes to judge (default: all of them, or none with --nets)")
+    p.add_argument("--nets", nargs="+", default=[], metavar="NAME=DIR",
+                   help="generators (a run, or its pretrained/) whose own designs are judged")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1)
     p.add_argument("--out", required=True, help="folder for the designs, outcomes and judges.json")
     args = p.parse_args(argv)
     if args.fresh < 0 or args.workers < 1:
         p.error("--fresh must be >= 0 and --workers >= 1")
+    named = {}
+    for item in args.nets:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not Path(path).is_dir() or name in named or name in MODES:
+            p.error(f"--nets takes NAME=DIR with a new name and an existing directory, got {item!r}")
+        named[name] = path
+    modes = args.modes if args.modes is not None else ([] if named else list(MODES))
     try:
         import pybullet  # noqa: F401
     except ImportError:
@@ -128,21 +144,28 @@ def main(argv=None) -> int:
         pairs = [imprint_fingers(o, cfg.geometry) for o in objs]
         return dict(left=np.stack([a for a, _ in pairs]), right=np.stack([b for _, b in pairs]))
 
-    def designed(mode):
+    def designed(mode, params=nets):
         def fn():
             t = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", design_module.InfeasibleDesignWarning)
-                pairs = design_module.design(objs, params=nets, **MODES[mode])
+                pairs = design_module.design(objs, params=params, **MODES.get(mode, MODES["net"]))
             return dict(left=np.stack([q.left for q in pairs]), right=np.stack([q.right for q in pairs]),
                         origin=np.array([q.origin for q in pairs]),
                         seconds=np.float64(time.perf_counter() - t))
         return fn
 
     designs = {"Imprint": _saved(out / "design-Imprint.npz", imprint)}
-    for mode in args.modes:
+    for mode in modes:
         designs[mode] = _saved(out / f"design-{mode.replace(' ', '_')}.npz", designed(mode))
         print(f"designed: {mode} ({float(designs[mode]['seconds']):.0f} s)", flush=True)
+    for name, path in named.items():
+        from f2f_jax.train.checkpoint import load_trained_nets
+
+        designs[name] = _saved(out / f"design-net-{name.replace(' ', '_')}.npz",
+                               designed(name, load_trained_nets(path)))
+        print(f"designed: {name}, the own design of {path} ({float(designs[name]['seconds']):.0f} s)",
+              flush=True)
 
     def judge(name, d):
         def fn():
@@ -181,6 +204,18 @@ def main(argv=None) -> int:
             cells.append("–" if mode == "Imprint" else
                          f"{g['diff']:+.2f} [{g['ci_low']:+.2f}, {g['ci_high']:+.2f}]")
         print(f"| {mode} | " + " | ".join(cells) + " |")
+    names = list(named)
+    if len(names) > 1:
+        print("\nown designs, paired: trials of 11, 95% bootstrap interval")
+        for i, a in enumerate(names):
+            for b in names[i + 1:]:
+                cells = []
+                for j in JUDGES:
+                    g = paired_gain(results[(j, a)][:, None], results[(j, b)][:, None])["trials_own"]
+                    summary.setdefault("paired", {}).setdefault(j, {})[f"{a} minus {b}"] = g
+                    cells.append(f"{j} {g['diff']:+.2f} [{g['ci_low']:+.2f}, {g['ci_high']:+.2f}]")
+                print(f"{a} minus {b}: " + "; ".join(cells))
+    summary["nets_judged"] = named
     origins = {m: dict(zip(*np.unique(designs[m]["origin"], return_counts=True)))
                for m in designs if "origin" in designs[m]}
     summary["origins"] = {m: {str(k): int(v) for k, v in o.items()} for m, o in origins.items()}
