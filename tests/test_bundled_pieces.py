@@ -90,3 +90,32 @@ def test_shipped_pieces_equal_what_coacd_makes_now(volumes):
     shipped = bundled_hulls(_key(g16), K, V)
     assert np.array_equal(fresh.counts, shipped.counts)
     np.testing.assert_allclose(fresh.vertices, shipped.vertices, atol=1e-6)
+
+
+def _teacher_volume(index: int) -> np.ndarray:
+    """Builtin object ``index`` of seed 0 as an object set stores it (float16-rounded)."""
+    from f2f_jax.data.objects import builtin_object
+    from f2f_jax.geometry import mesh_to_tsdf
+
+    return mesh_to_tsdf(builtin_object(index, 0), G).astype(np.float16).astype(np.float32)
+
+
+def test_the_teacher_objects_pieces_ship():
+    """The teacher config's extra objects (builtin 64-299 of seed 0, as an object set stores them)
+    ship their pieces: without them a teacher run first spends ~30 min of coacd on 2 cores."""
+    from f2f_jax import config
+
+    t = config.teacher().train
+    for index in (t.n_objects, 200, t.n_objects + t.teacher_objects - 1):
+        assert bundled_hulls(_key(_teacher_volume(index)), K, V) is not None, (
+            f"builtin object {index} not shipped: `{REBUILD}`")
+
+
+@pytest.mark.slow
+def test_a_teacher_objects_shipped_pieces_equal_what_coacd_makes_now():
+    """A sample of the teacher objects: coacd here makes the pieces that ship for it."""
+    vol = _teacher_volume(217)
+    fresh = object_hulls(vol, G, cache_dir=False)
+    shipped = bundled_hulls(_key(vol), K, V)
+    assert shipped is not None and np.array_equal(fresh.counts, shipped.counts)
+    np.testing.assert_allclose(fresh.vertices, shipped.vertices, atol=1e-6)
