@@ -7,46 +7,14 @@ from __future__ import annotations
 import numpy as np
 
 from f2f_jax.config import GeometryConfig
-from f2f_jax.geometry import imprint_fingers
-from f2f_jax.nets.inference import HEIGHT_NOISE_GRID, perturbed_heights
-
-# The imprint candidates of the pool: (origin, voxels the object is grown by before imprinting).
-# Grown, its imprint leaves a voxel of play (looser); shrunk, it presses a voxel sooner (tighter).
-IMPRINT_VARIANTS: tuple[tuple[str, float], ...] = (
-    ("imprint", 0.0), ("imprint, 1 voxel looser", 1.0), ("imprint, 1 voxel tighter", -1.0))
-GENERATOR = "generator"
-GENERATOR_NOISE = "generator + latent noise"
-GENERATOR_HEIGHT_NOISE = "generator + height noise"  # a height-map generator's candidates
-
-
-def imprint_candidates(objects: np.ndarray, geometry: GeometryConfig | None = None
-                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The imprint pairs of ``IMPRINT_VARIANTS``: objects [B, R, R, R] -> lefts, rights
-    [B, V, R, R, R] float32 and made [B, V] bool.
-
-    A variant grows the object by ``voxels`` before imprinting (its TSDF, in units of the
-    truncation distance, lowered by voxels x voxel size / truncation).  Where that leaves no
-    volume to imprint (a box that fills the cube, grown by a voxel, has no voxel outside; a thin
-    wall, shrunk by one, may vanish), the variant is not made: its fingers are empty volumes and
-    ``made`` is False there, so the pool leaves it out.  The plain imprint (0 voxels) is made for
-    every object that ``check_tsdf`` accepts."""
-    g = geometry or GeometryConfig()
-    step = g.voxel_size / g.truncation
-    objects = np.asarray(objects, np.float32)
-    b, v, r = len(objects), len(IMPRINT_VARIANTS), g.resolution
-    lefts = np.ones((b, v, r, r, r), np.float32)
-    rights = np.ones((b, v, r, r, r), np.float32)
-    made = np.zeros((b, v), bool)
-    for i, obj in enumerate(objects):
-        for j, (_, voxels) in enumerate(IMPRINT_VARIANTS):
-            grown = np.clip(obj - voxels * step, -1.0, 1.0).astype(np.float32)
-            solid = grown < 0
-            if voxels != 0 and (solid.all() or not solid.any()):
-                continue  # nothing left outside (or inside) to imprint
-            lefts[i, j], rights[i, j] = imprint_fingers(grown, g)
-            made[i, j] = True
-    return lefts, rights, made
-
+from f2f_jax.geometry.fingers import IMPRINT_VARIANTS, imprint_candidates  # noqa: F401 (the pool's)
+from f2f_jax.nets.inference import (  # noqa: F401 (the pool's origins)
+    GENERATOR,
+    GENERATOR_HEIGHT_NOISE,
+    GENERATOR_NOISE,
+    HEIGHT_NOISE_GRID,
+    perturbed_heights,
+)
 
 def left_out_reason(origin: str) -> str:
     """Why an imprint variant could not be made, in a user's terms."""

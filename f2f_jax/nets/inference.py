@@ -34,6 +34,11 @@ LATENT_NOISE = 0.2
 # how far the shape auto-encoder moves an imprint's faces).
 HEIGHT_NOISE_VOXELS = 10.0
 HEIGHT_NOISE_GRID = 5
+# The origins of candidates, as design()'s pool and the teacher's store name them: candidate 0,
+# and the others by their generator's kind of noise.
+GENERATOR = "generator"
+GENERATOR_NOISE = "generator + latent noise"
+GENERATOR_HEIGHT_NOISE = "generator + height noise"  # a height-map generator's candidates
 # Candidates (or objects) per vectorised chunk inside one jitted call: bounds activation memory
 # (default config: ~1 GB per 256 fitness triples on a CPU) without a Python loop.
 CHUNK = 256
@@ -229,3 +234,17 @@ def _fitness_jit(net_cfg: NetConfig, variables, objects, lefts, rights, *, chunk
     p = _chunked_map(one, (owner, lefts.reshape(b * k, r, r, r), rights.reshape(b * k, r, r, r)),
                      chunk)
     return p.reshape(b, k, -1)
+
+
+def within_object_spearman(predicted: np.ndarray, simulated: np.ndarray) -> np.ndarray:
+    """Per object, the Spearman rank correlation of its candidates' scores (mean predicted
+    probability) with the trials they passed: predicted, simulated [N, K, 11] -> [N], nan for an
+    object whose candidates all pass the same trials or all score the same (nothing to rank)."""
+    from scipy.stats import rankdata
+
+    score, value = np.asarray(predicted, np.float64).mean(-1), np.asarray(simulated, np.float64).sum(-1)
+    rho = np.full(len(score), np.nan)
+    for i, (sc, va) in enumerate(zip(score, value)):
+        if np.ptp(va) > 0 and np.ptp(sc) > 0:
+            rho[i] = np.corrcoef(rankdata(sc), rankdata(va))[0, 1]
+    return rho

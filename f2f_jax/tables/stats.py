@@ -10,22 +10,8 @@ import numpy as np
 from f2f_jax.config import Config
 from f2f_jax.designer import simulate_candidates
 from f2f_jax.geometry import postprocess
-from f2f_jax.nets.inference import LATENT_NOISE, predict, propose
+from f2f_jax.nets.inference import LATENT_NOISE, predict, propose, within_object_spearman  # noqa: F401
 from f2f_jax.tables.designers import objects_array
-
-
-def within_object_spearman(predicted: np.ndarray, simulated: np.ndarray) -> np.ndarray:
-    """Per object, the Spearman rank correlation of its candidates' scores (mean predicted
-    probability) with the trials they passed: predicted, simulated [N, K, 11] -> [N], nan for an
-    object whose candidates all pass the same trials or all score the same (nothing to rank)."""
-    from scipy.stats import rankdata
-
-    score, value = np.asarray(predicted, np.float64).mean(-1), np.asarray(simulated, np.float64).sum(-1)
-    rho = np.full(len(score), np.nan)
-    for i, (sc, va) in enumerate(zip(score, value)):
-        if np.ptp(va) > 0 and np.ptp(sc) > 0:
-            rho[i] = np.corrcoef(rankdata(sc), rankdata(va))[0, 1]
-    return rho
 
 
 def ranking_stats(predicted: np.ndarray, simulated: np.ndarray) -> dict[str, float]:

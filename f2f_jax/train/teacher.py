@@ -8,7 +8,7 @@ that search over many objects.  Each cycle c:
 1. every teacher object (the run's training objects and ``teacher_objects`` more built-in ones)
    gets ``teacher_candidates`` designs: the generator's own and its height-noise candidates
    (``nets.inference.propose``), and in cycle 1 also the imprint and its two variants
-   (``design_pool.IMPRINT_VARIANTS``); all are simulated by the run's simulator and appended to the
+   (``geometry.fingers.IMPRINT_VARIANTS``); all are simulated by the run's simulator and appended to the
    grasp store, ``teacher_chunk`` objects per chunk (keyed, so a killed cycle resumes where it
    stopped and nothing simulated is lost);
 2. each object's target is its best-simulated pair over cycles 1..c: most trials passed, ties to
@@ -35,11 +35,18 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from f2f_jax.data import load_or_make_builtin_range
-from f2f_jax.design_pool import GENERATOR, GENERATOR_HEIGHT_NOISE, GENERATOR_NOISE, IMPRINT_VARIANTS, imprint_candidates
 from f2f_jax.errors import F2FError
 from f2f_jax.geometry import is_feasible, postprocess
-from f2f_jax.nets.inference import TrainedNets, predict, propose
-from f2f_jax.tables.stats import within_object_spearman
+from f2f_jax.geometry.fingers import IMPRINT_VARIANTS, imprint_candidates
+from f2f_jax.nets.inference import (
+    GENERATOR,
+    GENERATOR_HEIGHT_NOISE,
+    GENERATOR_NOISE,
+    TrainedNets,
+    predict,
+    propose,
+    within_object_spearman,
+)
 from f2f_jax.train import steps as S
 from f2f_jax.train.epochs import LazyBatches, row_batches
 from f2f_jax.train.run_data import read_rows
