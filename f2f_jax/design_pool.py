@@ -16,6 +16,7 @@ from f2f_jax.nets.inference import (  # noqa: F401 (the pool's origins)
     perturbed_heights,
 )
 
+
 def left_out_reason(origin: str) -> str:
     """Why an imprint variant could not be made, in a user's terms."""
     voxels = dict(IMPRINT_VARIANTS).get(origin, 0.0)

@@ -15,7 +15,7 @@ that search over many objects.  Each cycle c:
    the imprint (an object keeps its imprint until a design passes strictly more);
 3. the fitness net trains on the teacher rows (all 11 trials; half of each batch teacher rows,
    half pretraining rows) except those of ``teacher_fn_holdout`` of the objects, on whose
-   candidates its within-object Spearman is measured (``tables.stats.within_object_spearman``);
+   candidates its within-object Spearman is measured (``nets.inference.within_object_spearman``);
 4. the generator is regressed onto the targets (the pretraining's loss, ``gn_imprint_step``) for
    ``teacher_epochs`` epochs.
 
