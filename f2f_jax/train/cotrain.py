@@ -386,8 +386,9 @@ class CoTrainRun:
                 s = run_teacher_cycle(self, st, c)
                 line = f"taught by the {s['teacher']}, {s['designs']} designs"
                 if "improved_objects" in s:
+                    rho = "n/a" if s["fn_spearman"] is None else f"{s['fn_spearman']:+.2f}"
                     line += (f", {s['improved_objects']} of {s['objects']} objects better than their "
-                             f"imprint, FN within-object Spearman {s['fn_spearman']}")
+                             f"imprint, FN within-object Spearman {rho}")
             if self.progress:
                 print(f"cycle {c}/{cycles}: {line}, {s['seconds']:.0f} s", flush=True)
             self.plot()
