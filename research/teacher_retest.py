@@ -1,0 +1,144 @@
+"""Do the simulator-as-teacher's targets hold when their fingers are printed?
+
+    python research/teacher_retest.py --run-dir runs/teacher0 --tolerance 0.3 --copies 4 --json OUT.json
+
+A teacher run (``cotrain.py --config teacher``) regresses its generator onto each teacher object's
+best-simulated pair, where that pair passes strictly more trials than the object's imprint.  The
+best of several designs, each simulated once, is partly luck: one trial turns on tenths of a
+millimetre of finger (``research/sim_retest.py --perturb heights``).  Here every object whose target
+beat its imprint (over the cycles up to ``--cycle``, default the last simulated) has both pairs
+simulated again: once exactly (the simulator is deterministic, so this reproduces the store's
+outcomes) and on ``--copies`` moved copies, both fingers' height maps moved by a smooth field of
+``--tolerance`` mm, one field per object, copy and side shared by the target and the imprint
+(``design_pool.printed_copies``: paired, as ``design(tolerance=)`` compares candidates).
+
+Printed: the targets' and imprints' trials of 11 exactly and over the moved copies, the paired
+gain of target over imprint on the copies with a 95% bootstrap interval over objects, and how many
+objects keep a lead.  A target whose lead vanishes on moved copies is one the generator was taught
+from the simulator's noise.  Cost: 2 x (1 + copies) evaluations per improved object (~6 minutes for
+79 objects and 4 copies on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def retest_table(exact: np.ndarray, moved: np.ndarray, stored: np.ndarray, origins) -> dict:
+    """The retest's figures: exact [n, 2, T] (target, imprint) re-simulated, moved [C, n, 2, T] on
+    C moved copies, stored [n, 2, T] the store's outcomes, origins [n] the targets' kinds.  Trials
+    of 11 exactly and over the copies, the paired gain of target over imprint on the copies
+    (``paired_gain``'s trials_mean), the objects whose lead holds or turns, per origin."""
+    from f2f_jax.tables.stats import paired_gain
+
+    trials = exact.sum(-1).astype(float)  # [n, 2]
+    copies = moved.sum(-1).astype(float).mean(0)  # [n, 2]
+    origins = np.asarray(origins).astype(str)
+    out = {"exact_reproduced": int((exact == stored).all((1, 2)).sum()),
+           "exact": {"target": float(trials[:, 0].mean()), "imprint": float(trials[:, 1].mean())},
+           "moved": {"target": float(copies[:, 0].mean()), "imprint": float(copies[:, 1].mean())},
+           "moved_gain": paired_gain(moved[:, :, 0].transpose(1, 0, 2),
+                                     moved[:, :, 1].transpose(1, 0, 2))["trials_mean"],
+           "lead_kept": int((copies[:, 0] > copies[:, 1]).sum()),
+           "lead_lost": int((copies[:, 0] < copies[:, 1]).sum()), "by_origin": {}}
+    for o in sorted(set(origins)):
+        m = origins == o
+        out["by_origin"][o] = {"objects": int(m.sum()),
+                               "exact_gain": float((trials[m, 0] - trials[m, 1]).mean()),
+                               "moved_gain": float((copies[m, 0] - copies[m, 1]).mean())}
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run-dir", required=True, type=Path, help="a run made with train.teacher=simulator")
+    p.add_argument("--cycle", type=int, default=None, help="targets over cycles 1..CYCLE (default: all)")
+    p.add_argument("--tolerance", type=float, default=0.3, help="printing tolerance, mm")
+    p.add_argument("--copies", type=int, default=4)
+    p.add_argument("--seed", type=int, default=0, help="the moved copies' fields")
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args(argv)
+    if args.copies < 1 or args.tolerance <= 0 or (args.cycle is not None and args.cycle < 1):
+        p.error("--copies and --cycle must be >= 1 and --tolerance > 0")
+    if not (args.run_dir / "run.json").exists() or not (args.run_dir / "store").is_dir():
+        p.error(f"{args.run_dir} is not a run directory (no run.json or store)")
+
+    from f2f_jax import sim
+    from f2f_jax.dataset.store import GraspStore
+    from f2f_jax.design_pool import printed_copies
+    from f2f_jax.train.run_dir import read_record
+    from f2f_jax.train.teacher import IMPRINT, best_rows
+
+    _, cfg = read_record(json.loads((args.run_dir / "run.json").read_text()), 0)
+    if cfg is None:
+        p.error(f"{args.run_dir}/run.json holds no readable config")
+    store = GraspStore(args.run_dir / "store")
+    meta = store.read(("cycle", "kind", "name"))
+    last = int(meta["cycle"].max()) if len(meta["cycle"]) else 0
+    cycle = last if args.cycle is None else args.cycle
+    keep = np.flatnonzero((meta["cycle"] >= 1) & (meta["cycle"] <= cycle))
+    if not (meta["kind"][keep] == IMPRINT).any():
+        p.error(f"{args.run_dir} has no teacher rows in cycles 1..{cycle}: was it taught by the simulator?")
+    start, stop = int(keep[0]), int(keep[-1]) + 1  # a teacher's cycles are contiguous chunks
+    rows = store.read(("object", "left", "right", "outcome", "kind", "name", "cycle"), start=start, stop=stop)
+    rows = {k: v[keep - start] for k, v in rows.items()}
+    names = sorted({str(n) for n in rows["name"]})
+    best, passed, imprint = best_rows(rows, names)
+    improved = np.flatnonzero((best >= 0) & (imprint >= 0) & (passed > imprint))
+    at = {(str(n), str(k)): i for i, (n, k) in enumerate(zip(rows["name"], rows["kind"]))}
+    imp = np.array([at[(names[o], IMPRINT)] for o in improved])
+    tgt = best[improved]
+    n = len(improved)
+    print(f"{args.run_dir}: cycles 1..{cycle}, {len(names)} teacher objects, {n} whose target beats its "
+          f"imprint; simulating 2 x (1 + {args.copies}) x {n} = {2 * (1 + args.copies) * n} evaluations",
+          flush=True)
+    if n == 0:
+        return 0
+    f32 = lambda a: np.asarray(a, np.float32)  # noqa: E731
+    objs = f32(rows["object"][tgt])
+    lefts = f32(np.stack([rows["left"][tgt], rows["left"][imp]], 1))  # [n, 2, R, R, R]: target, imprint
+    rights = f32(np.stack([rows["right"][tgt], rows["right"][imp]], 1))
+    t0 = time.perf_counter()
+
+    def run(l2, r2, what):
+        out = sim.evaluate(np.repeat(objs, 2, 0), l2.reshape(-1, *l2.shape[2:]), r2.reshape(-1, *r2.shape[2:]),
+                           cfg=cfg, progress=True)
+        print(f"simulated {what} ({time.perf_counter() - t0:.0f} s)", flush=True)
+        return out.reshape(n, 2, -1)
+
+    exact = run(lefts, rights, "exact")
+    stored = np.stack([rows["outcome"][tgt], rows["outcome"][imp]], 1)
+    moved = []
+    for c in range(args.copies):  # one field per object, copy and side, shared by target and imprint
+        ml = [printed_copies(lefts[:, j], rights[:, j], args.tolerance, cfg.geometry, 1, [args.seed, c])
+              for j in range(2)]
+        moved.append(run(np.stack([m[0] for m in ml], 1), np.stack([m[1] for m in ml], 1), f"copy {c + 1}"))
+    moved = np.stack(moved)  # [C, n, 2, 11]
+    summary = {"run_dir": str(args.run_dir), "cycle": cycle, "teacher_objects": len(names), "improved": n,
+               "tolerance_mm": args.tolerance, "copies": args.copies, "seed": args.seed,
+               **retest_table(exact, moved, stored, rows["kind"][tgt].astype(str)),
+               "seconds": round(time.perf_counter() - t0, 1)}
+    gain, same = summary["moved_gain"], summary["exact_reproduced"]
+    print(f"\n{n} improved targets; trials of 11, target / imprint (exact re-simulation reproduced the "
+          f"store for {same} of {n})")
+    print(f"exact: {summary['exact']['target']:.2f} / {summary['exact']['imprint']:.2f}")
+    print(f"{args.copies} moved copies at {args.tolerance} mm: {summary['moved']['target']:.2f} / "
+          f"{summary['moved']['imprint']:.2f}; target minus imprint {gain['diff']:+.2f} "
+          f"[{gain['ci_low']:+.2f}, {gain['ci_high']:+.2f}]; lead kept on {summary['lead_kept']}, "
+          f"lost on {summary['lead_lost']}")
+    for o, v in summary["by_origin"].items():
+        print(f"  {o}: {v['objects']} objects, gain exact {v['exact_gain']:+.2f}, moved {v['moved_gain']:+.2f}")
+    if args.json:
+        args.json.write_text(json.dumps(summary, indent=1))
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,41 @@
+"""research/teacher_retest.py: whether the teacher's targets keep their lead on moved copies."""
+
+import numpy as np
+import pytest
+
+import research.teacher_retest as study
+
+
+def _outcomes(passed):
+    """[...] trials passed -> [..., 11] outcomes, the first ``passed`` trials 1."""
+    passed = np.asarray(passed)
+    return (np.arange(11) < passed[..., None]).astype(np.uint8)
+
+
+def test_a_lead_that_vanishes_on_moved_copies_is_counted_lost():
+    exact = _outcomes([[11, 9], [10, 9], [9, 8]])  # [n, 2]: target, imprint; every target leads
+    moved = _outcomes(np.array([[[11, 9], [8, 9], [8, 8]],   # copy 1
+                                [[10, 9], [8, 10], [8, 8]]]))  # copy 2: object 1's lead was luck
+    stored = exact.copy()
+    stored[2, 0, -1] ^= 1  # one stored outcome the re-simulation does not reproduce
+    t = study.retest_table(exact, moved, stored, ["generator", "imprint, 1 voxel looser", "generator"])
+    assert t["exact_reproduced"] == 2
+    assert t["exact"]["target"] == pytest.approx(10.0) and t["exact"]["imprint"] == pytest.approx(26 / 3)
+    assert t["lead_kept"] == 1 and t["lead_lost"] == 1  # object 2 ties on its copies
+    gain = t["moved_gain"]  # per object +1.5, -1.5, 0
+    assert gain["diff"] == pytest.approx(0.0) and gain["better"] == 1 and gain["worse"] == 1
+    assert t["by_origin"]["imprint, 1 voxel looser"] == {"objects": 1, "exact_gain": 1.0, "moved_gain": -1.5}
+    assert t["by_origin"]["generator"]["moved_gain"] == pytest.approx(0.75)
+
+
+@pytest.mark.parametrize("flags", [["--copies", "0"], ["--tolerance", "0"], ["--cycle", "0"]])
+def test_bad_options_are_refused_before_any_work(flags, tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        study.main(["--run-dir", str(tmp_path), *flags])
+    assert exc.value.code == 2
+
+
+def test_a_folder_that_is_no_run_is_refused(tmp_path):
+    with pytest.raises(SystemExit) as exc:
+        study.main(["--run-dir", str(tmp_path)])
+    assert exc.value.code == 2
