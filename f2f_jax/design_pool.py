@@ -8,7 +8,7 @@ import numpy as np
 
 from f2f_jax.config import GeometryConfig
 from f2f_jax.geometry.fingers import IMPRINT_VARIANTS, imprint_candidates  # noqa: F401 (the pool's)
-from f2f_jax.nets.inference import (  # noqa: F401 (the pool's origins)
+from f2f_jax.nets.inference import (  # noqa: F401 (the GENERATOR names: re-exported, the pool's origins)
     GENERATOR,
     GENERATOR_HEIGHT_NOISE,
     GENERATOR_NOISE,

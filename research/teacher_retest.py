@@ -7,8 +7,8 @@ best-simulated pair, where that pair passes strictly more trials than the object
 best of several designs, each simulated once, is partly luck: one trial turns on tenths of a
 millimetre of finger (``research/sim_retest.py --perturb heights``).  Here every object whose target
 beat its imprint (over the cycles up to ``--cycle``, default the last simulated) has both pairs
-simulated again: once exactly (the simulator is deterministic, so this reproduces the store's
-outcomes) and on ``--copies`` moved copies, both fingers' height maps moved by a smooth field of
+simulated again: once exactly (from the store's float16 volumes, which reproduce most but not all
+of the stored outcomes: the designs were simulated at float32) and on ``--copies`` moved copies, both fingers' height maps moved by a smooth field of
 ``--tolerance`` mm, one field per object, copy and side shared by the target and the imprint
 (``design_pool.printed_copies``: paired, as ``design(tolerance=)`` compares candidates).
 
@@ -72,6 +72,7 @@ def main(argv=None) -> int:
     from f2f_jax import sim
     from f2f_jax.dataset.store import GraspStore
     from f2f_jax.design_pool import printed_copies
+    from f2f_jax.train.run_data import read_rows
     from f2f_jax.train.run_dir import read_record
     from f2f_jax.train.teacher import IMPRINT, best_rows
 
@@ -79,15 +80,11 @@ def main(argv=None) -> int:
     if cfg is None:
         p.error(f"{args.run_dir}/run.json holds no readable config")
     store = GraspStore(args.run_dir / "store")
-    meta = store.read(("cycle", "kind", "name"))
-    last = int(meta["cycle"].max()) if len(meta["cycle"]) else 0
-    cycle = last if args.cycle is None else args.cycle
-    keep = np.flatnonzero((meta["cycle"] >= 1) & (meta["cycle"] <= cycle))
-    if not (meta["kind"][keep] == IMPRINT).any():
+    cycles = store.read(("cycle",))["cycle"]
+    cycle = (int(cycles.max()) if len(cycles) else 0) if args.cycle is None else args.cycle
+    rows = read_rows(store, lambda cyc, kind: 1 <= cyc <= cycle)
+    if not (rows["kind"] == IMPRINT).any():
         p.error(f"{args.run_dir} has no teacher rows in cycles 1..{cycle}: was it taught by the simulator?")
-    start, stop = int(keep[0]), int(keep[-1]) + 1  # a teacher's cycles are contiguous chunks
-    rows = store.read(("object", "left", "right", "outcome", "kind", "name", "cycle"), start=start, stop=stop)
-    rows = {k: v[keep - start] for k, v in rows.items()}
     names = sorted({str(n) for n in rows["name"]})
     best, passed, imprint = best_rows(rows, names)
     improved = np.flatnonzero((best >= 0) & (imprint >= 0) & (passed > imprint))
