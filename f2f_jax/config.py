@@ -265,6 +265,9 @@ class TrainConfig:
     teacher_seed: int = 0
     teacher_candidates: int = 4  # designs per teacher object and cycle, the generator's own first
     teacher_epochs: int = 4  # generator (and fitness-net) epochs per cycle on the teacher's targets
+    # Learning rate of the generator's steps onto the targets (None: lr, as pretraining; the
+    # co-training cycles' generator_lr is a tenth of it).
+    teacher_lr: float | None = None
     teacher_chunk: int = 64  # objects simulated per store chunk: a kill loses at most one chunk
     # Teacher objects whose rows the fitness net does not train on: its within-object ranking is
     # measured on their candidates, each cycle (the teacher's generator trains on every object).

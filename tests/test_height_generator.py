@@ -153,6 +153,26 @@ def test_height_generator_co_trains_against_the_fitness_net(cfg, train_set, pret
     assert all(changed)
 
 
+def test_the_teachers_generator_steps_at_teacher_lr(cfg, train_set, pretrained):
+    """``train.teacher_lr`` is the rate of the generator's steps onto the teacher's targets: from
+    one Adam state, one step at a tenth of the rate moves the weights a tenth as far (Adam's first
+    step is the rate times the gradient's sign), and None steps at ``train.lr``."""
+    from f2f_jax.train.teacher import teacher_generator_cfg
+
+    objs, lefts, rights = train_set
+    state, _ = pretrained
+    start = state.replace(opt_state=generator_optimizer(cfg).init(state.params))
+    moved = {}
+    for rate in (None, cfg.train.lr / 10):
+        teach = teacher_generator_cfg(cfg.replace(train=dataclasses.replace(cfg.train, teacher_lr=rate)))
+        st, _ = S.gn_imprint_step(teach)(jax.tree.map(jnp.copy, start), *S.shard(objs[:8], lefts[:8],
+                                                                                  rights[:8]))
+        moved[rate] = sum(float(np.abs(np.asarray(a) - np.asarray(b)).sum())
+                          for a, b in zip(jax.tree.leaves(start.params), jax.tree.leaves(st.params)))
+    assert moved[None] > 0
+    assert 0.08 < moved[cfg.train.lr / 10] / moved[None] < 0.12, moved
+
+
 def test_random_embeddings_of_heights_and_settings_are_checked(cfg):
     from f2f_jax.geometry.fingers import feasibility_report
     from f2f_jax.tables import random_embedding_designer

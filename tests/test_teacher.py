@@ -61,6 +61,7 @@ def test_targets_keep_the_imprint_unless_a_design_passes_strictly_more():
     ("teacher_candidates", 0, "teacher_candidates must be >= 1"),
     ("teacher_chunk", 0, "teacher_chunk must be >= 1"),
     ("teacher_fn_holdout", 1.0, "teacher_fn_holdout must be in [0, 1)"),
+    ("teacher_lr", 0.0, "teacher_lr must be > 0"),
 ])
 def test_bad_teacher_settings_are_refused(field, value, words):
     cfg = config.teacher()

@@ -30,7 +30,8 @@ log = logging.getLogger(__name__)
 COTRAIN_FIELDS = ("cycles", "objectives", "cycle_candidates", "generator_lr", "warmup_designs",
                   "objects_per_cycle", "cotrain_batch_size", "fn_target_loss", "gn_target_loss",
                   "min_epochs", "max_epochs", "teacher", "teacher_objects", "teacher_seed",
-                  "teacher_candidates", "teacher_epochs", "teacher_chunk", "teacher_fn_holdout")
+                  "teacher_candidates", "teacher_epochs", "teacher_lr", "teacher_chunk",
+                  "teacher_fn_holdout")
 
 
 def meta_config(cfg: Config) -> dict:

@@ -17,7 +17,7 @@ that search over many objects.  Each cycle c:
    half pretraining rows) except those of ``teacher_fn_holdout`` of the objects, on whose
    candidates its within-object Spearman is measured (``nets.inference.within_object_spearman``);
 4. the generator is regressed onto the targets (the pretraining's loss, ``gn_imprint_step``) for
-   ``teacher_epochs`` epochs.
+   ``teacher_epochs`` epochs at ``teacher_lr``.
 
 ``train.teacher = "imprint"`` is its control: step 4 alone, every target the object's imprint, the
 same objects, batches and steps.  Randomness comes from (seed, "cycle", c, part, ...), as in
@@ -26,6 +26,7 @@ co-training, so a resumed run repeats what an uninterrupted one does.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import time
 from dataclasses import dataclass
@@ -53,6 +54,7 @@ from f2f_jax.train.run_data import read_rows
 from f2f_jax.train.run_state import RunState
 
 if TYPE_CHECKING:
+    from f2f_jax.config import Config
     from f2f_jax.train.cotrain import CoTrainRun
 
 TEACHERS = ("fitness", "simulator", "imprint")
@@ -81,6 +83,8 @@ def check_teacher(t) -> list[str]:
                       ("teacher_chunk", 1)):
         if getattr(t, name) < low:
             bad.append(f"train.{name} must be >= {low}, got {getattr(t, name)}")
+    if t.teacher_lr is not None and not t.teacher_lr > 0:
+        bad.append(f"train.teacher_lr must be > 0 (or None: train.lr), got {t.teacher_lr}")
     if not 0.0 <= t.teacher_fn_holdout < 1.0:
         bad.append(f"train.teacher_fn_holdout must be in [0, 1), got {t.teacher_fn_holdout}")
     return bad
@@ -207,12 +211,21 @@ def teacher_targets(st: RunState, ts: TeacherSet, rows: dict[str, np.ndarray] | 
     return left, right, stats
 
 
+def teacher_generator_cfg(cfg: Config) -> Config:
+    """The config of the generator's steps onto the targets: ``teacher_lr`` when set, else
+    ``lr``; the optimiser state is kept (its structure does not depend on the rate)."""
+    t = cfg.train
+    if t.teacher_lr is None or t.teacher_lr == t.lr:
+        return cfg
+    return cfg.replace(train=dataclasses.replace(t, lr=t.teacher_lr))
+
+
 def train_generator(run: CoTrainRun, st: RunState, ts: TeacherSet, c: int, left: np.ndarray,
                     right: np.ndarray) -> dict:
     """``teacher_epochs`` epochs of the generator's regression onto the targets (``gn_passes``
-    capped passes each, as its pretraining).  Returns the last epoch's record."""
+    capped passes each, as its pretraining), at ``teacher_lr``.  Returns the last epoch's record."""
     t = run.cfg.train
-    step = S.gn_imprint_step(run.cfg)
+    step = S.gn_imprint_step(teacher_generator_cfg(run.cfg))
     rec = {}
     for epoch in range(1, t.teacher_epochs + 1):
         rng = run.rng("cycle", c, 2, epoch)
