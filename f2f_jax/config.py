@@ -260,7 +260,7 @@ class TrainConfig:
     teacher: str = "fitness"
     # The teacher objects: the run's training objects and built-in objects n_objects ..
     # n_objects + teacher_objects - 1 of seed teacher_seed's stream (seed 0's pieces ship with
-    # the package up to object 299; others run coacd once), never one of the run's held-out objects.
+    # the package up to object 639; others run coacd once), never one of the run's held-out objects.
     teacher_objects: int = 0
     teacher_seed: int = 0
     teacher_candidates: int = 4  # designs per teacher object and cycle, the generator's own first

@@ -1,6 +1,6 @@
 """Rebuild the object pieces that ship with the package for the builtin objects.
 
-    python -m f2f_jax.cli.bundle_pieces                 # builtin objects 0-299 of seed 0
+    python -m f2f_jax.cli.bundle_pieces                 # builtin objects 0-639 of seed 0
     python -m f2f_jax.cli.bundle_pieces --n 16 --raw-n 4 --out /tmp/pieces.npz
 
 The builtin objects a run, the benchmarks and the tests start from are the same every time, and
@@ -9,10 +9,10 @@ and its worker processes, ``object_hulls_many``) and written to
 ``f2f_jax/geometry/builtin_pieces.npz`` under their cache keys, for both forms a volume of them
 takes: rounded to float16 as an object set stores it (``load_or_make_objects``: the default run's
 64 objects, the tiny run's first 16; ``load_or_make_builtin_range``: the teacher config's 236
-more, 64-299), and, for the first ``--raw-n`` (default 64), as
-``mesh_to_tsdf`` makes it (the tests, and the 64 builtin objects of the agreement, fidelity and
-throughput benchmarks).  ``object_hulls`` reads them when its cache has no
-entry.  Rebuild after anything that changes the volumes or the cache keys (the families, the
+more, 64-299, or up to 576 more with ``train.teacher_objects``, 64-639), and, for the first
+``--raw-n`` (default 64), as ``mesh_to_tsdf`` makes it (the tests, and the 64 builtin objects of
+the agreement, fidelity and throughput benchmarks).  ``object_hulls`` reads them when its cache
+has no entry.  Rebuild after anything that changes the volumes or the cache keys (the families, the
 TSDF code, ``CoacdSettings``, ``_CACHE_VERSION``); ``tests/test_bundled_pieces.py`` says when.
 """
 
@@ -53,7 +53,7 @@ def builtin_volumes(n: int, seed: int, g: GeometryConfig, raw_n: int | None = No
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--n", type=int, default=300, help="first builtin objects (default 300)")
+    p.add_argument("--n", type=int, default=640, help="first builtin objects (default 640)")
     p.add_argument("--raw-n", type=int, default=64,
                    help="of those, the first ones also as mesh_to_tsdf makes them (default 64)")
     p.add_argument("--seed", type=int, default=0)
