@@ -9,8 +9,8 @@ The pieces of the builtin objects that runs, benchmarks and tests start from shi
 package (``builtin_pieces.npz``, rebuilt by ``python -m f2f_jax.cli.bundle_pieces``): objects 0-639
 of seed 0 as an object set stores them (float16; 64-299 are the teacher config's extra objects,
 64-639 those of a 627-object teacher set), and 0-63 also as ``mesh_to_tsdf`` makes them (the
-tests' and benchmarks' form).  A fresh machine
-reads them under the same keys instead of spending 8-10 minutes of coacd on each 64 of them.
+tests' and benchmarks' form).  A fresh machine reads them under the same keys instead of spending
+8-10 minutes of coacd on each 64 of them.
 """
 
 from __future__ import annotations
