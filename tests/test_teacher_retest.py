@@ -28,7 +28,21 @@ def test_a_lead_that_vanishes_on_moved_copies_is_counted_lost():
     assert t["by_origin"]["generator"]["moved_gain"] == pytest.approx(0.75)
 
 
-@pytest.mark.parametrize("flags", [["--copies", "0"], ["--tolerance", "0"], ["--cycle", "0"]])
+def test_without_copies_the_exact_pairs_give_the_gain():
+    """The PyBullet judge's exact-only retest: the paired gain is over the exact outcomes, and no
+    moved figure is made up."""
+    exact = _outcomes([[11, 9], [8, 9], [9, 9]])  # per object +2, -1, 0
+    t = study.retest_table(exact, np.zeros((0, *exact.shape), np.uint8), exact, ["generator"] * 3)
+    gain = t["exact_gain"]
+    assert gain["diff"] == pytest.approx(1 / 3) and gain["better"] == 1 and gain["worse"] == 1
+    assert t["moved"] is None and t["moved_gain"] is None and t["lead_kept"] is None
+    assert t["by_origin"]["generator"] == {"objects": 3, "exact_gain": pytest.approx(1 / 3),
+                                           "moved_gain": None}
+
+
+@pytest.mark.parametrize("flags", [["--copies", "0"], ["--tolerance", "0"], ["--cycle", "0"],
+                                   ["--judge", "pybullet", "--copies", "-1"],
+                                   ["--judge", "pybullet", "--workers", "0"]])
 def test_bad_options_are_refused_before_any_work(flags, tmp_path):
     with pytest.raises(SystemExit) as exc:
         study.main(["--run-dir", str(tmp_path), *flags])
@@ -39,3 +53,14 @@ def test_a_folder_that_is_no_run_is_refused(tmp_path):
     with pytest.raises(SystemExit) as exc:
         study.main(["--run-dir", str(tmp_path)])
     assert exc.value.code == 2
+
+
+def test_the_pybullet_judge_takes_no_copies_and_still_checks_the_folder(tmp_path, capsys):
+    """``--copies 0`` is allowed with the PyBullet judge (its exact outcomes are new), so what
+    refuses the empty folder is that it is no run."""
+    pytest.importorskip("pybullet")
+    with pytest.raises(SystemExit) as exc:
+        study.main(["--run-dir", str(tmp_path), "--judge", "pybullet", "--copies", "0"])
+    assert exc.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]  # argparse's last line: the reason
+    assert "is not a run directory" in error and "--copies" not in error
