@@ -18,7 +18,8 @@ gain of target over imprint on the copies with a 95% bootstrap interval over obj
 objects keep a lead.  A target whose lead vanishes on moved copies is one the generator was taught
 from the simulator's noise.  Cost: 2 x (1 + copies) evaluations per improved object (~6 minutes for
 79 objects and 4 copies on 2 cores).  ``--json`` keeps each object's trials too, so two judges'
-retests of one run join object by object.
+retests of one run join object by object: ``teacher_retest.py --join MOVED.json PEER.json`` prints
+the peer's gain over the targets whose lead held on the moved copies.
 
 ``--judge pybullet`` simulates the same pairs with the PyBullet peer instead (Bullet's step split
 in 4, as ``benchmarks/design_judges.py`` judges; needs the ``pybullet`` extra): does a target chosen
@@ -70,7 +71,59 @@ def retest_table(exact: np.ndarray, moved: np.ndarray, stored: np.ndarray, origi
     return out
 
 
+def join_table(moved_trials: np.ndarray, peer_trials: np.ndarray, n_boot: int = 10000,
+               seed: int = 0) -> dict:
+    """Two judges' retests of one run's targets, object by object: moved_trials [C, n, 2] (target,
+    imprint) on one judge's moved copies, peer_trials [n, 2] the other judge's exact trials.  The
+    second judge's gain of target over imprint (mean, 95% bootstrap interval, objects better and
+    worse) over every object, over those whose lead held on the copies (the targets a teacher
+    picking by the mean over moved copies would keep), and over those leading there by >= 1 and
+    >= 2 trials."""
+    moved = np.asarray(moved_trials, float).mean(0)  # [n, 2]
+    d = np.asarray(peer_trials, float) @ np.array([1.0, -1.0])
+    lead = moved[:, 0] - moved[:, 1]
+    rng = np.random.default_rng(seed)
+    out = {}
+    subsets = (("all", np.ones(len(d), bool)), ("lead kept on the copies", lead > 0),
+               ("lead >= 1 trial on the copies", lead >= 1), ("lead >= 2 trials on the copies", lead >= 2))
+    for name, m in subsets:
+        x = d[m]
+        if not len(x):
+            out[name] = {"objects": 0}
+            continue
+        boot = x[rng.integers(0, len(x), (n_boot, len(x)))].mean(1)
+        lo, hi = np.percentile(boot, [2.5, 97.5])
+        out[name] = {"objects": int(m.sum()), "diff": float(x.mean()), "ci_low": float(lo),
+                     "ci_high": float(hi), "better": int((x > 0).sum()), "worse": int((x < 0).sum())}
+    return out
+
+
+def join_main(moved_json: Path, peer_json: Path) -> int:
+    """``--join``: read two ``--json`` retests of one run (moved copies, then the exact peer) and
+    print ``join_table``."""
+    a, b = (json.loads(Path(f).read_text()) for f in (moved_json, peer_json))
+    if "per_object" not in a or "per_object" not in b:
+        raise SystemExit("teacher_retest --join: both files need per-object trials (made by --json)")
+    a, b = a["per_object"], b["per_object"]
+    if a["name"] != b["name"] or not a["moved_trials"]:
+        raise SystemExit("teacher_retest --join: the first file needs moved copies, and both the same "
+                         "run's targets")
+    print(f"{peer_json}'s exact gain of target over imprint, trials of 11, by the lead on "
+          f"{moved_json}'s copies")
+    for name, v in join_table(np.array(a["moved_trials"]), np.array(b["exact_trials"])).items():
+        print(f"  {name}: {v['objects']} objects" + ("" if not v["objects"] else
+              f", {v['diff']:+.2f} [{v['ci_low']:+.2f}, {v['ci_high']:+.2f}] (better {v['better']}, "
+              f"worse {v['worse']})"))
+    return 0
+
+
 def main(argv=None) -> int:
+    if argv is None:
+        argv = sys.argv[1:]
+    if argv[:1] == ["--join"]:
+        if len(argv) != 3:
+            raise SystemExit("usage: teacher_retest.py --join MOVED.json PEER.json")
+        return join_main(Path(argv[1]), Path(argv[2]))
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run-dir", required=True, type=Path, help="a run made with train.teacher=simulator")
     p.add_argument("--cycle", type=int, default=None, help="targets over cycles 1..CYCLE (default: all)")

@@ -64,3 +64,25 @@ def test_the_pybullet_judge_takes_no_copies_and_still_checks_the_folder(tmp_path
     assert exc.value.code == 2
     error = capsys.readouterr().err.strip().splitlines()[-1]  # argparse's last line: the reason
     assert "is not a run directory" in error and "--copies" not in error
+
+
+def test_the_join_counts_the_peers_gain_over_the_targets_whose_lead_held():
+    """Object 0 leads on the moved copies and gains under the peer; object 1 loses its lead on the
+    copies, so the moved-copies subset leaves its peer loss out; object 2 leads by 2 and ties."""
+    moved = np.array([[[10, 9], [8, 9], [11, 9]],
+                      [[10, 9], [9, 9], [11, 9]]])  # [C=2, n=3, 2]: leads +1, -0.5, +2
+    peer = np.array([[11, 8], [5, 9], [9, 9]])  # gains +3, -4, 0
+    t = study.join_table(moved, peer)
+    assert t["all"]["objects"] == 3 and t["all"]["diff"] == pytest.approx(-1 / 3)
+    kept = t["lead kept on the copies"]
+    assert kept["objects"] == 2 and kept["diff"] == pytest.approx(1.5)
+    assert kept["better"] == 1 and kept["worse"] == 0
+    assert t["lead >= 2 trials on the copies"] == {"objects": 1, "diff": 0.0, "ci_low": 0.0, "ci_high": 0.0,
+                                                   "better": 0, "worse": 0}
+
+
+def test_a_join_of_files_without_per_object_trials_is_refused(tmp_path):
+    old = tmp_path / "old.json"
+    old.write_text('{"improved": 3}')
+    with pytest.raises(SystemExit, match="per-object"):
+        study.main(["--join", str(old), str(old)])
