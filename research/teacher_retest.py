@@ -72,20 +72,21 @@ def retest_table(exact: np.ndarray, moved: np.ndarray, stored: np.ndarray, origi
 
 
 def join_table(moved_trials: np.ndarray, peer_trials: np.ndarray, n_boot: int = 10000,
-               seed: int = 0) -> dict:
+               seed: int = 0, n_trials: int = 11) -> dict:
     """Two judges' retests of one run's targets, object by object: moved_trials [C, n, 2] (target,
     imprint) on one judge's moved copies, peer_trials [n, 2] the other judge's exact trials.  The
     second judge's gain of target over imprint (mean, 95% bootstrap interval, objects better and
     worse) over every object, over those whose lead held on the copies (the targets a teacher
-    picking by the mean over moved copies would keep), and over those leading there by >= 1 and
-    >= 2 trials."""
+    picking by the mean over moved copies would keep), over those leading there by >= 1 and
+    >= 2 trials, and over those whose imprint misses a trial under the second judge."""
     moved = np.asarray(moved_trials, float).mean(0)  # [n, 2]
     d = np.asarray(peer_trials, float) @ np.array([1.0, -1.0])
     lead = moved[:, 0] - moved[:, 1]
     rng = np.random.default_rng(seed)
     out = {}
     subsets = (("all", np.ones(len(d), bool)), ("lead kept on the copies", lead > 0),
-               ("lead >= 1 trial on the copies", lead >= 1), ("lead >= 2 trials on the copies", lead >= 2))
+               ("lead >= 1 trial on the copies", lead >= 1), ("lead >= 2 trials on the copies", lead >= 2),
+               ("the peer's imprint misses a trial", np.asarray(peer_trials)[:, 1] < n_trials))
     for name, m in subsets:
         x = d[m]
         if not len(x):

@@ -79,6 +79,7 @@ def test_the_join_counts_the_peers_gain_over_the_targets_whose_lead_held():
     assert kept["better"] == 1 and kept["worse"] == 0
     assert t["lead >= 2 trials on the copies"] == {"objects": 1, "diff": 0.0, "ci_low": 0.0, "ci_high": 0.0,
                                                    "better": 0, "worse": 0}
+    assert t["the peer's imprint misses a trial"]["objects"] == 3  # 8, 9 and 9 of 11
 
 
 def test_a_join_of_files_without_per_object_trials_is_refused(tmp_path):
