@@ -47,7 +47,6 @@ MODES = {
     "default": dict(),
 }
 JUDGES = ("mujoco", "pybullet")
-SUBSTEPS = 4
 
 
 def _objects(args, g):
@@ -118,10 +117,9 @@ def main(argv=None) -> int:
         p.error("the PyBullet judge needs the pybullet extra: pip install -e '.[pybullet]'")
 
     from f2f_jax import config, sim
-    from f2f_jax.bench.pybullet_runs import run_peer
+    from f2f_jax.bench.pybullet_runs import JUDGE_SUBSTEPS, judge_designs
     from f2f_jax import designer as design_module
     from f2f_jax.geometry import imprint_fingers
-    from f2f_jax.geometry.finger_tiling import finger_hulls
     from f2f_jax.geometry.pieces import object_pieces_many
     from f2f_jax.tables.stats import paired_gain
 
@@ -129,7 +127,6 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     nets = _nets(args.run_dir)
     cfg = config.with_sim_preset(nets.config, "fast")
-    ref = config.with_sim_preset(nets.config, "reference")  # the peer's geometry (protocol_fidelity)
     objs, names = _objects(args, cfg.geometry)
     t0 = time.perf_counter()
     pieces = object_pieces_many(list(objs), cfg, workers=args.workers, progress=True)
@@ -174,9 +171,7 @@ def main(argv=None) -> int:
                 res = sim.evaluate(objs, d["left"], d["right"], cfg=cfg, threads=args.workers,
                                    object_hulls=pieces, progress=True)
             else:
-                lh = [finger_hulls(f, ref) for f in d["left"]]
-                rh = [finger_hulls(f, ref) for f in d["right"]]
-                res, _ = run_peer(pieces, lh, rh, ref, args.workers, dict(substeps=SUBSTEPS))
+                res = judge_designs(pieces, d["left"], d["right"], cfg, args.workers)
             return dict(outcome=np.asarray(res, np.uint8), seconds=np.float64(time.perf_counter() - t))
         return fn
 
@@ -188,7 +183,7 @@ def main(argv=None) -> int:
             print(f"judged: {j} {mode} ({float(r['seconds']):.0f} s)", flush=True)
 
     summary = {"objects": len(objs), "run_dir": args.run_dir, "fresh": args.fresh, "seed": args.seed,
-               "nets": nets.source, "peer_substeps": SUBSTEPS, "judges": {}}
+               "nets": nets.source, "peer_substeps": JUDGE_SUBSTEPS, "judges": {}}
     print(f"\n{len(objs)} objects; trials of 11 (grasp %); minus Imprint: trials of 11, paired, 95% "
           "bootstrap interval")
     print(f"| mode | {' | '.join(f'{j}: trials (grasp) | {j}: minus Imprint' for j in JUDGES)} |")

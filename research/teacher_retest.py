@@ -38,8 +38,6 @@ from pathlib import Path
 
 import numpy as np
 
-PEER_SUBSTEPS = 4  # the PyBullet peer's numSubSteps, as benchmarks/design_judges.py judges
-
 
 def retest_table(exact: np.ndarray, moved: np.ndarray, stored: np.ndarray, origins) -> dict:
     """The retest's figures: exact [n, 2, T] (target, imprint) re-simulated, moved [C, n, 2, T] on
@@ -183,12 +181,9 @@ def main(argv=None) -> int:
     rights = f32(np.stack([rows["right"][tgt], rows["right"][imp]], 1))
     t0 = time.perf_counter()
     if args.judge == "pybullet":
-        from f2f_jax import config
-        from f2f_jax.bench.pybullet_runs import run_peer
-        from f2f_jax.geometry.finger_tiling import finger_hulls
+        from f2f_jax.bench.pybullet_runs import judge_designs
         from f2f_jax.geometry.pieces import object_pieces_many
 
-        ref = config.with_sim_preset(cfg, "reference")  # the peer's fingers, as design_judges meshes them
         pieces = object_pieces_many(list(objs), cfg, workers=args.workers, progress=True)
         bad = [names[o] for o, h in zip(improved, pieces) if isinstance(h, str)]
         if bad:
@@ -198,8 +193,7 @@ def main(argv=None) -> int:
     def run(l2, r2, what):
         l2, r2 = l2.reshape(-1, *l2.shape[2:]), r2.reshape(-1, *r2.shape[2:])
         if args.judge == "pybullet":
-            out, _ = run_peer(pieces2, [finger_hulls(f, ref) for f in l2], [finger_hulls(f, ref) for f in r2],
-                              ref, args.workers, dict(substeps=PEER_SUBSTEPS))
+            out = judge_designs(pieces2, l2, r2, cfg, args.workers)
         else:
             out = sim.evaluate(np.repeat(objs, 2, 0), l2, r2, cfg=cfg, threads=args.workers, progress=True)
         print(f"simulated {what} ({time.perf_counter() - t0:.0f} s)", flush=True)

@@ -204,3 +204,21 @@ def run_peer(objects, lefts, rights, cfg, workers: int, changes: dict | None = N
     with ProcessPoolExecutor(len(chunks), mp_context=get_context("spawn")) as pool:
         parts = list(pool.map(peer_chunk, chunks))
     return np.concatenate([p[0] for p in parts]), sum(p[1] for p in parts)
+
+
+JUDGE_SUBSTEPS = 4  # the peer as a second judge: Bullet's 1/240 s step split in 4 (1/960 s)
+
+
+def judge_designs(object_pieces, lefts, rights, cfg: Config, workers: int) -> np.ndarray:
+    """The PyBullet peer as an independent judge of N designs: each object's pieces (``Hulls``)
+    with its left and right finger volumes [N, R, R, R], the fingers meshed as the ``reference``
+    preset meshes them, Bullet's step split in ``JUDGE_SUBSTEPS``, the original's protocol
+    otherwise.  Returns [N, 11] uint8 outcomes."""
+    from f2f_jax.config import with_sim_preset
+    from f2f_jax.geometry.finger_tiling import finger_hulls
+
+    ref = with_sim_preset(cfg, "reference")
+    out, _ = run_peer(object_pieces, [finger_hulls(f, ref) for f in lefts],
+                      [finger_hulls(f, ref) for f in rights], ref, workers, dict(substeps=JUDGE_SUBSTEPS))
+    return np.asarray(out, np.uint8)
+
