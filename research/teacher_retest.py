@@ -77,23 +77,19 @@ def join_table(moved_trials: np.ndarray, peer_trials: np.ndarray, n_boot: int = 
     worse) over every object, over those whose lead held on the copies (the targets a teacher
     picking by the mean over moved copies would keep), over those leading there by >= 1 and
     >= 2 trials, and over those whose imprint misses a trial under the second judge."""
+    from f2f_jax.tables.stats import difference_interval
+
     moved = np.asarray(moved_trials, float).mean(0)  # [n, 2]
     d = np.asarray(peer_trials, float) @ np.array([1.0, -1.0])
     lead = moved[:, 0] - moved[:, 1]
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(seed)  # one stream over the subsets, in their order
     out = {}
     subsets = (("all", np.ones(len(d), bool)), ("lead kept on the copies", lead > 0),
                ("lead >= 1 trial on the copies", lead >= 1), ("lead >= 2 trials on the copies", lead >= 2),
                ("the peer's imprint misses a trial", np.asarray(peer_trials)[:, 1] < n_trials))
     for name, m in subsets:
-        x = d[m]
-        if not len(x):
-            out[name] = {"objects": 0}
-            continue
-        boot = x[rng.integers(0, len(x), (n_boot, len(x)))].mean(1)
-        lo, hi = np.percentile(boot, [2.5, 97.5])
-        out[name] = {"objects": int(m.sum()), "diff": float(x.mean()), "ci_low": float(lo),
-                     "ci_high": float(hi), "better": int((x > 0).sum()), "worse": int((x < 0).sum())}
+        out[name] = {"objects": int(m.sum()),
+                     **(difference_interval(d[m], n_boot=n_boot, rng=rng) if m.any() else {})}
     return out
 
 

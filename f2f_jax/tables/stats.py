@@ -221,15 +221,19 @@ def paired_gain(after: np.ndarray, before: np.ndarray, *, n_boot: int = 10000,
     if a.ndim != 3 or b.ndim != 3 or a.shape[0] != b.shape[0] or a.shape[2] != b.shape[2]:
         raise ValueError(f"after {a.shape} and before {b.shape}: expected [N, K, 11] outcomes of "
                          "the same N objects")
-    rng = np.random.default_rng(seed)
-    resample = rng.integers(0, a.shape[0], (n_boot, a.shape[0]))
-    out = {}
-    for name, f in PAIRED_MEASURES.items():
-        d = f(a) - f(b)
-        boot = d[resample].mean(1)
-        lo, hi = np.percentile(boot, [2.5, 97.5])
-        out[name] = {"before": float(f(b).mean()), "after": float(f(a).mean()),
-                     "diff": float(d.mean()), "ci_low": float(lo), "ci_high": float(hi),
-                     "better": int((d > 0).sum()), "worse": int((d < 0).sum())}
-    return out
+    return {name: {"before": float(f(b).mean()), "after": float(f(a).mean()),
+                   **difference_interval(f(a) - f(b), n_boot=n_boot, seed=seed)}
+            for name, f in PAIRED_MEASURES.items()}
+
+
+def difference_interval(d: np.ndarray, *, n_boot: int = 10000, seed: int = 0,
+                        rng: np.random.Generator | None = None) -> dict[str, float]:
+    """Per-object differences d [N] (N >= 1): their mean, its 95% percentile bootstrap interval
+    (objects resampled ``n_boot`` times, drawn from ``rng`` or else a fresh generator of ``seed``,
+    so one seed resamples every d of one N alike), and how many objects moved up or down."""
+    d = np.asarray(d, np.float64)
+    resample = (rng or np.random.default_rng(seed)).integers(0, len(d), (n_boot, len(d)))
+    lo, hi = np.percentile(d[resample].mean(1), [2.5, 97.5])
+    return {"diff": float(d.mean()), "ci_low": float(lo), "ci_high": float(hi),
+            "better": int((d > 0).sum()), "worse": int((d < 0).sum())}
 
