@@ -272,6 +272,15 @@ class TrainConfig:
     # Teacher objects whose rows the fitness net does not train on: its within-object ranking is
     # measured on their candidates, each cycle (the teacher's generator trains on every object).
     teacher_fn_holdout: float = 0.1
+    # Targets confirmed on moved copies (``train/teacher.py``, ``confirm_targets``): 0 takes each
+    # object's best exact pair.  C > 0 simulates an object's new best pair and its imprint on C
+    # copies, both fingers' height maps moved by one smooth field of ``teacher_tolerance`` mm per
+    # copy and side (the same for the two, as ``design(tolerance=)`` compares candidates), and
+    # keeps the pair only when its mean over the copies leads the imprint's by at least
+    # ``teacher_min_lead`` trials (and by more than none); a pair refused is not tried again.
+    teacher_copies: int = 0
+    teacher_tolerance: float = 0.3
+    teacher_min_lead: float = 2.0
 
 
 @dataclass(frozen=True)

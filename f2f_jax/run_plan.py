@@ -14,7 +14,9 @@ def planned_simulations(cfg: Config, n_objects: int | None = None) -> dict[str, 
     cycles' designs and the two held-out evaluations of the generator; "total" sums them.  A run
     taught by the simulator (``train.teacher``) designs ``teacher_candidates`` per teacher object
     and cycle, and 3 imprint variants more in cycle 1 (at most: a variant that cannot be made is
-    skipped); one taught by the imprints simulates nothing in its cycles."""
+    skipped); one taught by the imprints simulates nothing in its cycles.  Not counted: the
+    confirmations of ``train.teacher_copies`` (``teacher_copies`` evaluations per new target and
+    as many per object's imprint, once), since how many objects improve is not known before."""
     t = cfg.train
     n = t.n_objects if n_objects is None else n_objects
     n_test = held_out_count(n, t.test_fraction)

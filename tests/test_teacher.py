@@ -62,6 +62,9 @@ def test_targets_keep_the_imprint_unless_a_design_passes_strictly_more():
     ("teacher_chunk", 0, "teacher_chunk must be >= 1"),
     ("teacher_fn_holdout", 1.0, "teacher_fn_holdout must be in [0, 1)"),
     ("teacher_lr", 0.0, "teacher_lr must be > 0"),
+    ("teacher_copies", -1, "teacher_copies must be >= 0"),
+    ("teacher_tolerance", 0.0, "teacher_tolerance must be > 0"),
+    ("teacher_min_lead", -1.0, "teacher_min_lead must be >= 0"),
 ])
 def test_bad_teacher_settings_are_refused(field, value, words):
     cfg = config.teacher()
@@ -106,3 +109,80 @@ def test_start_from_weights_refuses_what_is_not_a_run(tmp_path, capsys):
     with pytest.raises(SystemExit):
         script.main(["--data", str(tmp_path / "data"), "--out", str(tmp_path / "used")])
     assert "is not empty" in capsys.readouterr().err
+
+
+def _finger(height: float, r: int = 8) -> np.ndarray:
+    from f2f_jax.nets.generator import heights_to_tsdf
+
+    return np.asarray(heights_to_tsdf(np.full((1, r, r), height, np.float32), 5.0)[0], np.float16)
+
+
+def test_confirmed_targets_need_a_lead_on_moved_copies_and_are_simulated_once(tmp_path):
+    """``train.teacher_copies``: a target must lead its imprint on moved copies; a pair that
+    loses its lead there is refused and never tried again, the next-best pair gets its turn a
+    cycle later, the imprint's copies are simulated once, and a killed confirmation resumes."""
+    import dataclasses
+    import json
+    from types import SimpleNamespace
+
+    from f2f_jax.train.teacher import CONFIRM_FILE, confirm_targets
+
+    def trials(vol):  # a stand-in simulator: trials passed grow with the left finger's height
+        return min(11, 2 * int(round(float((np.asarray(vol) < 0).sum(-1).mean()))))
+
+    calls = []
+
+    def simulate(objs, lefts, rights, what):
+        calls.append(len(lefts))
+        out = np.zeros((len(lefts), 11), np.uint8)
+        for i, left in enumerate(lefts):
+            out[i, :trials(left)] = 1
+        return out
+
+    imp = _finger(2)  # 4 trials, exactly and on its copies
+    entries = [("a", IMPRINT, 1, 4, imp, imp), ("a", "generator", 1, 9, _finger(5), imp),  # copies: 10
+               ("b", IMPRINT, 1, 4, imp, imp),
+               ("b", "generator", 1, 11, imp, _finger(3)),  # 11 exactly, 4 on its copies: luck
+               ("b", "generator + height noise", 1, 7, _finger(4), imp),  # 7 exactly, 8 on copies
+               ("c", IMPRINT, 1, 4, imp, imp), ("c", "generator", 1, 4, _finger(6), imp)]  # no lead
+    outcome = np.zeros((len(entries), 11), np.uint8)
+    for i, e in enumerate(entries):
+        outcome[i, :e[3]] = 1
+    rows = {"name": np.array([e[0] for e in entries]), "kind": np.array([e[1] for e in entries]),
+            "cycle": np.array([e[2] for e in entries]), "outcome": outcome,
+            "left": np.stack([e[4] for e in entries]), "right": np.stack([e[5] for e in entries])}
+    ts = TeacherSet(objects=np.zeros((3, 8, 8, 8), np.float16), names=["a", "b", "c"],
+                    imprint_left=np.stack([imp] * 3), imprint_right=np.stack([imp] * 3),
+                    fn_holdout=np.zeros(3, bool))
+    cfg = config.teacher()
+    cfg = cfg.replace(train=dataclasses.replace(cfg.train, teacher_copies=3, teacher_chunk=1))
+    run = SimpleNamespace(cfg=cfg, dir=tmp_path, seed=0, progress=False, simulate=simulate)
+
+    def killed(*args):  # a kill while the second object's copies simulate
+        if calls:
+            raise KeyboardInterrupt
+        return simulate(*args)
+
+    run.simulate = killed
+    with pytest.raises(KeyboardInterrupt):
+        confirm_targets(run, ts, 1, rows)
+    assert calls == [6] and len(json.loads((tmp_path / CONFIRM_FILE).read_text())["designs"]) == 1
+    run.simulate = simulate
+    chosen, stats = confirm_targets(run, ts, 1, rows)
+    assert calls == [6, 6]  # only b's target and imprint: a's were kept from before the kill
+    assert chosen.tolist() == [1, -1, -1]  # a kept; b's lucky pair refused; c never led
+    assert stats["exact_improved_objects"] == 2 and stats["refused_this_cycle"] == 1
+    assert stats["target_lead_on_copies"] == pytest.approx(6.0)
+    left, _, tstats = teacher_targets(None, ts, rows, chosen)
+    assert (left[0] == rows["left"][1]).all() and (left[1] == imp).all()
+    assert tstats["improved_objects"] == 1 and tstats["target_trials"] == pytest.approx((9 + 4 + 4) / 3)
+
+    chosen, stats = confirm_targets(run, ts, 2, rows)  # the next cycle: b's next-best pair's turn
+    assert calls == [6, 6, 3]  # b's new pair alone: its imprint's copies are known
+    assert chosen.tolist() == [1, 4, -1] and stats["kept_this_cycle"] == 1
+    again, _ = confirm_targets(run, ts, 2, rows)  # a rerun of the cycle simulates nothing
+    assert calls == [6, 6, 3] and again.tolist() == [1, 4, -1]
+    strict = cfg.replace(train=dataclasses.replace(cfg.train, teacher_min_lead=5.0))
+    run2 = SimpleNamespace(cfg=strict, dir=tmp_path / "strict", seed=0, progress=False, simulate=simulate)
+    assert confirm_targets(run2, ts, 1, rows)[0].tolist() == [1, -1, -1]  # a leads by 6 >= 5
+    assert confirm_targets(run2, ts, 2, rows)[0].tolist() == [1, -1, -1]  # b's 4 < 5

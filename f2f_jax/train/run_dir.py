@@ -31,7 +31,7 @@ COTRAIN_FIELDS = ("cycles", "objectives", "cycle_candidates", "generator_lr", "w
                   "objects_per_cycle", "cotrain_batch_size", "fn_target_loss", "gn_target_loss",
                   "min_epochs", "max_epochs", "teacher", "teacher_objects", "teacher_seed",
                   "teacher_candidates", "teacher_epochs", "teacher_lr", "teacher_chunk",
-                  "teacher_fn_holdout")
+                  "teacher_fn_holdout", "teacher_copies", "teacher_tolerance", "teacher_min_lead")
 
 
 def meta_config(cfg: Config) -> dict:

@@ -12,7 +12,8 @@ that search over many objects.  Each cycle c:
    grasp store, ``teacher_chunk`` objects per chunk (keyed, so a killed cycle resumes where it
    stopped and nothing simulated is lost);
 2. each object's target is its best-simulated pair over cycles 1..c: most trials passed, ties to
-   the imprint (an object keeps its imprint until a design passes strictly more);
+   the imprint (an object keeps its imprint until a design passes strictly more); with
+   ``teacher_copies`` the pair must also lead its imprint on moved copies (``confirm_targets``);
 3. the fitness net trains on the teacher rows (all 11 trials; half of each batch teacher rows,
    half pretraining rows) except those of ``teacher_fn_holdout`` of the objects, on whose
    candidates its within-object Spearman is measured (``nets.inference.within_object_spearman``);
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import json
 import time
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -37,6 +39,7 @@ from tqdm.auto import tqdm
 
 from f2f_jax.data import load_or_make_builtin_range
 from f2f_jax.errors import F2FError
+from f2f_jax.fileio import atomic_path
 from f2f_jax.geometry import is_feasible, postprocess
 from f2f_jax.geometry.fingers import IMPRINT_VARIANTS, imprint_candidates
 from f2f_jax.nets.inference import (
@@ -59,6 +62,7 @@ if TYPE_CHECKING:
 
 TEACHERS = ("fitness", "simulator", "imprint")
 IMPRINT = IMPRINT_VARIANTS[0][0]
+CONFIRM_FILE = "teacher_confirm.json"  # in the run directory: the moved copies' outcomes
 
 
 @dataclass
@@ -87,6 +91,12 @@ def check_teacher(t) -> list[str]:
         bad.append(f"train.teacher_lr must be > 0 (or None: train.lr), got {t.teacher_lr}")
     if not 0.0 <= t.teacher_fn_holdout < 1.0:
         bad.append(f"train.teacher_fn_holdout must be in [0, 1), got {t.teacher_fn_holdout}")
+    if t.teacher_copies < 0:
+        bad.append(f"train.teacher_copies must be >= 0 (0: exact targets), got {t.teacher_copies}")
+    if not t.teacher_tolerance > 0:
+        bad.append(f"train.teacher_tolerance must be > 0 (mm), got {t.teacher_tolerance}")
+    if not t.teacher_min_lead >= 0:
+        bad.append(f"train.teacher_min_lead must be >= 0 (trials of 11), got {t.teacher_min_lead}")
     return bad
 
 
@@ -172,16 +182,20 @@ def simulate_teacher(run: CoTrainRun, st: RunState, ts: TeacherSet, c: int) -> f
     return time.perf_counter() - start
 
 
-def best_rows(rows: dict[str, np.ndarray], names: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def best_rows(rows: dict[str, np.ndarray], names: list[str], excluded: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Per teacher object (``names``' order), the row of its best-simulated design: most trials
-    passed; ties to the imprint, then to the earlier cycle and row.  Returns (row index or -1 for
-    an object without rows, its trials passed, the imprint's trials passed or -1 without one)."""
+    passed; ties to the imprint, then to the earlier cycle and row; rows where ``excluded`` [rows]
+    bool is set never count.  Returns (row index or -1 for an object without rows, its trials
+    passed, the imprint's trials passed or -1 without one)."""
     where = {n: i for i, n in enumerate(names)}
     obj = np.array([where[str(n)] for n in rows["name"]], int)
     trials = rows["outcome"].sum(1).astype(int)
     is_imprint = rows["kind"] == IMPRINT
     # best first: trials descending, the imprint first, earlier cycle, earlier row
     order = np.lexsort((np.arange(len(obj)), rows["cycle"], ~is_imprint, -trials, obj))
+    if excluded is not None:
+        order = order[~np.asarray(excluded, bool)[order]]
     first = np.ones(len(order), bool)
     first[1:] = obj[order][1:] != obj[order][:-1]
     best = np.full(len(names), -1)
@@ -192,15 +206,19 @@ def best_rows(rows: dict[str, np.ndarray], names: list[str]) -> tuple[np.ndarray
     return best, passed, imprint
 
 
-def teacher_targets(st: RunState, ts: TeacherSet, rows: dict[str, np.ndarray] | None
-                    ) -> tuple[np.ndarray, np.ndarray, dict]:
+def teacher_targets(st: RunState, ts: TeacherSet, rows: dict[str, np.ndarray] | None,
+                    chosen: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """The generator's targets (lefts, rights float16, one pair per teacher object) and what they
-    are: each object's best-simulated pair over ``rows`` (None: the imprints, the control's)."""
+    are: each object's best-simulated pair over ``rows`` (None: the imprints, the control's), or
+    the rows ``chosen`` [objects] picks (-1: the imprint; ``confirm_targets``' picks)."""
     left, right = ts.imprint_left.copy(), ts.imprint_right.copy()
     if rows is None:
         return left, right, {}
     best, passed, imprint = best_rows(rows, ts.names)
     better = (best >= 0) & (imprint >= 0) & (passed > imprint)
+    if chosen is not None:
+        best, better = np.asarray(chosen), np.asarray(chosen) >= 0
+        passed = np.where(better, rows["outcome"][np.maximum(best, 0)].sum(1).astype(int), imprint)
     left[better] = rows["left"][best[better]]
     right[better] = rows["right"][best[better]]
     kinds = rows["kind"][best[better]]
@@ -209,6 +227,117 @@ def teacher_targets(st: RunState, ts: TeacherSet, rows: dict[str, np.ndarray] | 
              "imprint_trials": float(np.maximum(imprint, 0).mean()),
              "improved_by_origin": {str(k): int(v) for k, v in zip(*np.unique(kinds, return_counts=True))}}
     return left, right, stats
+
+
+def design_digest(left: np.ndarray, right: np.ndarray) -> str:
+    """A pair of finger volumes' identity (their float16 bytes), as the confirmation file keys it."""
+    h = hashlib.sha256(np.ascontiguousarray(left, np.float16).tobytes())
+    h.update(np.ascontiguousarray(right, np.float16).tobytes())
+    return h.hexdigest()[:24]
+
+
+def _copy_seed(seed: int, name: str) -> list[int]:
+    """The moved copies' fields of object ``name``: the same for each of its pairs and cycles."""
+    return [seed, 0xC0F1, int.from_bytes(hashlib.sha256(name.encode()).digest()[:4], "big")]
+
+
+def _read_confirmations(path) -> dict:
+    if not path.exists():
+        return {"imprints": {}, "designs": {}}
+    return json.loads(path.read_text())
+
+
+def _refused(book: dict, rows: dict, last_cycle: int, digests: dict) -> np.ndarray:
+    """[rows] bool: the rows whose pair the confirmation refused in cycles <= ``last_cycle``."""
+    refused: dict[str, set] = {}
+    for key, e in book["designs"].items():
+        if not e["kept"] and e["cycle"] <= last_cycle:
+            name, digest = key.rsplit(":", 1)
+            refused.setdefault(name, set()).add(digest)
+    out = np.zeros(len(rows["name"]), bool)
+    for i in np.flatnonzero(np.isin(rows["name"].astype(str), list(refused))):
+        if i not in digests:
+            digests[i] = design_digest(rows["left"][i], rows["right"][i])
+        out[i] = digests[i] in refused[str(rows["name"][i])]
+    return out
+
+
+def confirm_targets(run: CoTrainRun, ts: TeacherSet, c: int, rows: dict) -> tuple[np.ndarray, dict]:
+    """Cycle c's targets confirmed on moved copies (``train.teacher_copies`` > 0).
+
+    Each object's best pair over ``rows`` (as ``best_rows``; pairs refused in earlier cycles left
+    out) that passes more trials than its imprint, if not yet confirmed, is simulated on
+    ``teacher_copies`` copies of its fingers, each moved by a smooth field of ``teacher_tolerance``
+    mm (``design_pool.printed_copies``), and so is the imprint once, on the same fields.  The pair
+    is kept when its mean over the copies leads the imprint's by >= ``teacher_min_lead`` trials
+    and by more than none; a refused pair is never an object's target again.  The outcomes are
+    written to the run's ``teacher_confirm.json`` after each chunk of ``teacher_chunk`` objects, so
+    a killed cycle resumes without simulating them again.  Returns, per object, the row of its
+    target (-1: the imprint) and the figures of the cycle's confirmation."""
+    from f2f_jax.design_pool import printed_copies
+
+    t, g = run.cfg.train, run.cfg.geometry
+    path = run.dir / CONFIRM_FILE
+    book = _read_confirmations(path)
+    digests: dict[int, str] = {}
+    start = time.perf_counter()
+
+    def key(o: int, i: int) -> str:
+        if i not in digests:
+            digests[i] = design_digest(rows["left"][i], rows["right"][i])
+        return f"{ts.names[o]}:{digests[i]}"
+
+    best, passed, imprint = best_rows(rows, ts.names, _refused(book, rows, c - 1, digests))
+    lead = np.flatnonzero((best >= 0) & (imprint >= 0) & (passed > imprint))
+    todo = [o for o in lead if key(o, best[o]) not in book["designs"]]
+    n_eval = 0
+    chunks = range(0, len(todo), t.teacher_chunk)
+    for j in tqdm(chunks, desc=f"cycle {c} targets on moved copies", unit="chunk",
+                  disable=not run.progress or not todo):
+        part = todo[j:j + t.teacher_chunk]
+        objs, lefts, rights, what = [], [], [], []  # what: (object, "target" or "imprint")
+        for o in part:
+            name, seed = ts.names[o], _copy_seed(run.seed, ts.names[o])
+            pairs = [("target", rows["left"][best[o]], rows["right"][best[o]])]
+            if name not in book["imprints"]:
+                pairs.append(("imprint", ts.imprint_left[o], ts.imprint_right[o]))
+            for role, left, right in pairs:
+                ml, mr = printed_copies(left[None].astype(np.float32), right[None].astype(np.float32),
+                                        t.teacher_tolerance, g, t.teacher_copies, seed)
+                objs += [ts.objects[o]] * t.teacher_copies
+                lefts.append(ml)
+                rights.append(mr)
+                what.append((o, role))
+        out = run.simulate(np.stack(objs).astype(np.float32), np.concatenate(lefts), np.concatenate(rights),
+                           f"cycle {c} targets and imprints on {t.teacher_copies} moved copies, "
+                           f"chunk {j // t.teacher_chunk + 1}")
+        n_eval += len(out)
+        trials = np.asarray(out).sum(1).reshape(len(what), t.teacher_copies)
+        for (o, role), tr in zip(what, trials):
+            if role == "imprint":
+                book["imprints"][ts.names[o]] = tr.tolist()
+        for (o, role), tr in zip(what, trials):
+            if role == "target":
+                gain = float(tr.mean() - np.mean(book["imprints"][ts.names[o]]))
+                book["designs"][key(o, best[o])] = {
+                    "cycle": c, "trials": tr.tolist(), "lead": gain,
+                    "kept": bool(gain > 0 and gain >= t.teacher_min_lead)}
+        with atomic_path(path) as tmp:
+            tmp.write_text(json.dumps(book))
+    # the targets: the best pair of each object with this cycle's refusals left out, if confirmed
+    best, passed, imprint = best_rows(rows, ts.names, _refused(book, rows, c, digests))
+    chosen = np.full(len(ts.names), -1)
+    for o in np.flatnonzero((best >= 0) & (imprint >= 0) & (passed > imprint)):
+        e = book["designs"].get(key(o, best[o]))
+        if e is not None and e["kept"]:
+            chosen[o] = best[o]
+    made = [e for e in book["designs"].values() if e["cycle"] == c]
+    kept_leads = [book["designs"][key(o, chosen[o])]["lead"] for o in np.flatnonzero(chosen >= 0)]
+    return chosen, {"exact_improved_objects": int(len(lead)), "confirmed_pairs": len(todo),
+                    "confirm_evaluations": n_eval, "confirm_seconds": round(time.perf_counter() - start, 2),
+                    "kept_this_cycle": sum(e["kept"] for e in made),
+                    "refused_this_cycle": sum(not e["kept"] for e in made),
+                    "target_lead_on_copies": float(np.mean(kept_leads)) if kept_leads else None}
 
 
 def teacher_generator_cfg(cfg: Config) -> Config:
@@ -296,7 +425,11 @@ def run_teacher_cycle(run: CoTrainRun, st: RunState, c: int) -> dict:
                        feasible=float(np.mean([is_feasible(rows["left"][i].astype(np.float32), g)
                                                and is_feasible(rows["right"][i].astype(np.float32), g)
                                                for i in own])))
-        left, right, stats = teacher_targets(st, ts, rows)
+        chosen = None
+        if t.teacher_copies:
+            chosen, confirmed = confirm_targets(run, ts, c, rows)
+            summary.update(confirmed)
+        left, right, stats = teacher_targets(st, ts, rows, chosen)
         summary.update(stats)
         summary.update(train_fitness(run, st, ts, c, rows))
         del rows
