@@ -6,14 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from f2f_jax.config import GeometryConfig
 from f2f_jax.geometry.fingers import IMPRINT_VARIANTS, imprint_candidates  # noqa: F401 (the pool's)
-from f2f_jax.nets.inference import (  # noqa: F401 (the GENERATOR names: re-exported, the pool's origins)
+from f2f_jax.nets.inference import (  # noqa: F401 (re-exported: the pool's origins and moved copies)
     GENERATOR,
     GENERATOR_HEIGHT_NOISE,
     GENERATOR_NOISE,
     HEIGHT_NOISE_GRID,
     perturbed_heights,
+    printed_copies,
+    tolerance_voxels,
 )
 
 
@@ -23,25 +24,6 @@ def left_out_reason(origin: str) -> str:
     if voxels > 0:
         return "the object grown by a voxel fills the whole design cube (nothing left to imprint)"
     return "the object shrunk by a voxel has no solid left (its walls are thinner than 2 voxels)"
-
-
-def tolerance_voxels(tolerance_mm: float, geometry: GeometryConfig) -> float:
-    """A printer's tolerance in millimetres -> the moving field's standard deviation in voxels."""
-    return tolerance_mm / (1000.0 * geometry.voxel_size)
-
-
-def printed_copies(lefts: np.ndarray, rights: np.ndarray, tolerance_mm: float,
-                   geometry: GeometryConfig, copies: int, seed) -> tuple[np.ndarray, np.ndarray]:
-    """Fingers [N, R, R, R] -> ``copies`` moved copies of them, [copies x N, R, R, R] copy-major
-    (``perturbed_heights`` with fields of ``tolerance_mm``).  The fields depend only on ``seed``
-    (any numpy seed), the copy, the side and the object's index: called with the same seed, the
-    designs of every row of a table on the same N objects are moved alike (paired)."""
-    n = len(lefts)
-    grids = np.random.default_rng(seed).standard_normal(
-        (copies, 2, n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
-    sd, tr = tolerance_voxels(tolerance_mm, geometry), geometry.truncation_voxels
-    return (np.concatenate([perturbed_heights(lefts, sd, tr, grid=grids[c, 0]) for c in range(copies)]),
-            np.concatenate([perturbed_heights(rights, sd, tr, grid=grids[c, 1]) for c in range(copies)]))
 
 
 def rank_candidates(feasible: np.ndarray, predicted: np.ndarray,

@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from f2f_jax.config import Config, NetConfig
+from f2f_jax.config import Config, GeometryConfig, NetConfig
 from f2f_jax.nets.fitness import FitnessNet, fitness_input
 from f2f_jax.nets.generator import generator_module, heights_to_tsdf, tsdf_heights
 from f2f_jax.nets.shape import RESOLUTION
@@ -190,6 +190,25 @@ def perturbed_heights(fingers: np.ndarray, sd_voxels: float, truncation_voxels: 
     full = fingers[..., -1] < 0  # solid in the top voxel: up to the far face
     out[full] = fingers[full]
     return out
+
+
+def tolerance_voxels(tolerance_mm: float, geometry: GeometryConfig) -> float:
+    """A printer's tolerance in millimetres -> the moving field's standard deviation in voxels."""
+    return tolerance_mm / (1000.0 * geometry.voxel_size)
+
+
+def printed_copies(lefts: np.ndarray, rights: np.ndarray, tolerance_mm: float,
+                   geometry: GeometryConfig, copies: int, seed) -> tuple[np.ndarray, np.ndarray]:
+    """Fingers [N, R, R, R] -> ``copies`` moved copies of them, [copies x N, R, R, R] copy-major
+    (``perturbed_heights`` with fields of ``tolerance_mm``).  The fields depend only on ``seed``
+    (any numpy seed), the copy, the side and the object's index: called with the same seed, the
+    designs of every row of a table on the same N objects are moved alike (paired)."""
+    n = len(lefts)
+    grids = np.random.default_rng(seed).standard_normal(
+        (copies, 2, n, HEIGHT_NOISE_GRID, HEIGHT_NOISE_GRID))
+    sd, tr = tolerance_voxels(tolerance_mm, geometry), geometry.truncation_voxels
+    return (np.concatenate([perturbed_heights(lefts, sd, tr, grid=grids[c, 0]) for c in range(copies)]),
+            np.concatenate([perturbed_heights(rights, sd, tr, grid=grids[c, 1]) for c in range(copies)]))
 
 
 @functools.partial(jax.jit, static_argnames=("net_cfg", "candidates", "chunk"))

@@ -48,6 +48,7 @@ from f2f_jax.nets.inference import (
     GENERATOR_NOISE,
     TrainedNets,
     predict,
+    printed_copies,
     propose,
     within_object_spearman,
 )
@@ -268,14 +269,12 @@ def confirm_targets(run: CoTrainRun, ts: TeacherSet, c: int, rows: dict) -> tupl
     Each object's best pair over ``rows`` (as ``best_rows``; pairs refused in earlier cycles left
     out) that passes more trials than its imprint, if not yet confirmed, is simulated on
     ``teacher_copies`` copies of its fingers, each moved by a smooth field of ``teacher_tolerance``
-    mm (``design_pool.printed_copies``), and so is the imprint once, on the same fields.  The pair
+    mm (``nets.inference.printed_copies``), and so is the imprint once, on the same fields.  The pair
     is kept when its mean over the copies leads the imprint's by >= ``teacher_min_lead`` trials
     and by more than none; a refused pair is never an object's target again.  The outcomes are
     written to the run's ``teacher_confirm.json`` after each chunk of ``teacher_chunk`` objects, so
     a killed cycle resumes without simulating them again.  Returns, per object, the row of its
     target (-1: the imprint) and the figures of the cycle's confirmation."""
-    from f2f_jax.design_pool import printed_copies
-
     t, g = run.cfg.train, run.cfg.geometry
     path = run.dir / CONFIRM_FILE
     book = _read_confirmations(path)
