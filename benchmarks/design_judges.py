@@ -27,6 +27,11 @@ judge and mode: trials of 11, grasp success, and each mode minus Imprint, paired
 with a 95% bootstrap interval.  Each mode's designs and each judge's outcomes are saved in
 ``--out`` as they finish: rerun the same command after a kill and only what was left runs.
 Needs the ``pybullet`` extra.
+
+    python benchmarks/design_judges.py --pool runs/judges1 runs/judges2
+
+pools the saved outcomes of several ``--out`` folders (different objects, the same names): the
+designs both judges hold in every folder, their objects put together, printed as above.
 """
 
 from __future__ import annotations
@@ -90,7 +95,80 @@ def _saved(path: Path, fn):
     return out
 
 
+def judge_tables(results: dict, modes: list[str], nets: list[str]) -> dict:
+    """Print, and return as ``{"judges": ..., "paired": ...}``, each judge's trials of 11, grasp
+    success and gain over Imprint per mode (``results[(judge, mode)]``: outcomes [objects, 11]),
+    and each net in ``nets`` minus every later one, paired over the objects (95% bootstrap)."""
+    from f2f_jax.tables.stats import paired_gain
+
+    n = len(results[(JUDGES[0], "Imprint")])
+    out = {"judges": {}}
+    print(f"\n{n} objects; trials of 11 (grasp %); minus Imprint: trials of 11, paired, 95% "
+          "bootstrap interval")
+    print(f"| mode | {' | '.join(f'{j}: trials (grasp) | {j}: minus Imprint' for j in JUDGES)} |")
+    print("|---|" + "---|---|" * len(JUDGES))
+    for mode in modes:
+        cells = []
+        for j in JUDGES:
+            a, b = results[(j, mode)], results[(j, "Imprint")]
+            g = paired_gain(a[:, None], b[:, None])["trials_own"]
+            out["judges"].setdefault(j, {})[mode] = dict(
+                trials=float(a.sum(1).mean()), grasp=float(a[:, 0].mean()), minus_imprint=g)
+            cells.append(f"{a.sum(1).mean():.2f} ({100 * a[:, 0].mean():.0f})")
+            cells.append("–" if mode == "Imprint" else
+                         f"{g['diff']:+.2f} [{g['ci_low']:+.2f}, {g['ci_high']:+.2f}]")
+        print(f"| {mode} | " + " | ".join(cells) + " |")
+    if len(nets) > 1:
+        print("\nown designs, paired: trials of 11, 95% bootstrap interval")
+        for i, a in enumerate(nets):
+            for b in nets[i + 1:]:
+                cells = []
+                for j in JUDGES:
+                    g = paired_gain(results[(j, a)][:, None], results[(j, b)][:, None])["trials_own"]
+                    out.setdefault("paired", {}).setdefault(j, {})[f"{a} minus {b}"] = g
+                    cells.append(f"{j} {g['diff']:+.2f} [{g['ci_low']:+.2f}, {g['ci_high']:+.2f}] "
+                                 f"(better {g['better']}, worse {g['worse']})")
+                print(f"{a} minus {b}: " + "; ".join(cells))
+    return out
+
+
+def pool_main(folders: list[str]) -> dict:
+    """``--pool``: the outcomes saved in several ``--out`` folders, objects put together, for the
+    designs that both judges hold in every folder (in the first folder's order); printed, and
+    returned as ``judge_tables`` returns them."""
+    dirs = [Path(f) for f in folders]
+    missing = [str(d) for d in dirs if not (d / "judges.json").is_file()]
+    if len(dirs) < 2 or missing:
+        raise SystemExit("design_judges --pool: give two or more finished --out folders (with judges.json)"
+                         + (f"; none in {', '.join(missing)}" if missing else ""))
+
+    def held(d):
+        return [json.loads((d / "judges.json").read_text())["judges"][j] for j in JUDGES]
+
+    first = held(dirs[0])
+    names = [m for m in first[0] if all(m in h for d in dirs for h in held(d))]
+    if "Imprint" not in names:
+        raise SystemExit("design_judges --pool: the folders share no Imprint outcomes")
+    results = {}
+    for j in JUDGES:
+        for m in names:
+            parts = []
+            for d in dirs:
+                with np.load(d / f"judge-{j}-{m.replace(' ', '_')}.npz") as z:
+                    parts.append(z["outcome"].astype(np.uint8))
+            results[(j, m)] = np.concatenate(parts)
+    sizes = [len(np.load(d / f"judge-{JUDGES[0]}-Imprint.npz")["outcome"]) for d in dirs]
+    print(f"pooled: {', '.join(f'{d} ({k} objects)' for d, k in zip(folders, sizes))}")
+    nets = [m for m in names if m != "Imprint" and m not in MODES]
+    return judge_tables(results, names, nets)
+
+
 def main(argv=None) -> int:
+    if argv is None:
+        argv = sys.argv[1:]
+    if argv[:1] == ["--pool"]:
+        pool_main(argv[1:])
+        return 0
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run-dir", default=None, help="a run: its held-out objects and newest checkpoint")
     p.add_argument("--fresh", type=int, default=0, help="new built-in objects of --seed")
@@ -121,8 +199,6 @@ def main(argv=None) -> int:
     from f2f_jax import designer as design_module
     from f2f_jax.geometry import imprint_fingers
     from f2f_jax.geometry.pieces import object_pieces_many
-    from f2f_jax.tables.stats import paired_gain
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     nets = _nets(args.run_dir)
@@ -183,33 +259,8 @@ def main(argv=None) -> int:
             print(f"judged: {j} {mode} ({float(r['seconds']):.0f} s)", flush=True)
 
     summary = {"objects": len(objs), "run_dir": args.run_dir, "fresh": args.fresh, "seed": args.seed,
-               "nets": nets.source, "peer_substeps": JUDGE_SUBSTEPS, "judges": {}}
-    print(f"\n{len(objs)} objects; trials of 11 (grasp %); minus Imprint: trials of 11, paired, 95% "
-          "bootstrap interval")
-    print(f"| mode | {' | '.join(f'{j}: trials (grasp) | {j}: minus Imprint' for j in JUDGES)} |")
-    print("|---|" + "---|---|" * len(JUDGES))
-    for mode in designs:
-        cells = []
-        for j in JUDGES:
-            a, b = results[(j, mode)], results[(j, "Imprint")]
-            g = paired_gain(a[:, None], b[:, None])["trials_own"]
-            summary["judges"].setdefault(j, {})[mode] = dict(
-                trials=float(a.sum(1).mean()), grasp=float(a[:, 0].mean()), minus_imprint=g)
-            cells.append(f"{a.sum(1).mean():.2f} ({100 * a[:, 0].mean():.0f})")
-            cells.append("–" if mode == "Imprint" else
-                         f"{g['diff']:+.2f} [{g['ci_low']:+.2f}, {g['ci_high']:+.2f}]")
-        print(f"| {mode} | " + " | ".join(cells) + " |")
-    names = list(named)
-    if len(names) > 1:
-        print("\nown designs, paired: trials of 11, 95% bootstrap interval")
-        for i, a in enumerate(names):
-            for b in names[i + 1:]:
-                cells = []
-                for j in JUDGES:
-                    g = paired_gain(results[(j, a)][:, None], results[(j, b)][:, None])["trials_own"]
-                    summary.setdefault("paired", {}).setdefault(j, {})[f"{a} minus {b}"] = g
-                    cells.append(f"{j} {g['diff']:+.2f} [{g['ci_low']:+.2f}, {g['ci_high']:+.2f}]")
-                print(f"{a} minus {b}: " + "; ".join(cells))
+               "nets": nets.source, "peer_substeps": JUDGE_SUBSTEPS,
+               **judge_tables(results, list(designs), list(named))}
     summary["nets_judged"] = named
     origins = {m: dict(zip(*np.unique(designs[m]["origin"], return_counts=True)))
                for m in designs if "origin" in designs[m]}
