@@ -209,9 +209,9 @@ def main(argv=None) -> int:
     bad = [n for n, h in zip(names, pieces) if isinstance(h, str)]
     if bad:
         raise SystemExit(f"design_judges: no pieces for {bad}")
-    print(f"{len(objs)} objects ({args.run_dir or 'shipped weights'} held-out + {args.fresh} fresh "
-          f"of seed {args.seed}); pieces in {time.perf_counter() - t0:.0f} s; nets: {nets.source}",
-          flush=True)
+    held = f"{args.run_dir}'s held-out + " if args.run_dir else ""
+    print(f"{len(objs)} objects ({held}{args.fresh} fresh of seed {args.seed}); pieces in "
+          f"{time.perf_counter() - t0:.0f} s; nets: {nets.source}", flush=True)
 
     def imprint():
         pairs = [imprint_fingers(o, cfg.geometry) for o in objs]
