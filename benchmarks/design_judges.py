@@ -95,6 +95,11 @@ def _saved(path: Path, fn):
     return out
 
 
+def _judge_file(folder: Path, judge: str, mode: str) -> Path:
+    """Where ``--out`` keeps one judge's outcomes of one mode or net."""
+    return folder / f"judge-{judge}-{mode.replace(' ', '_')}.npz"
+
+
 def judge_tables(results: dict, modes: list[str], nets: list[str]) -> dict:
     """Print, and return as ``{"judges": ..., "paired": ...}``, each judge's trials of 11, grasp
     success and gain over Imprint per mode (``results[(judge, mode)]``: outcomes [objects, 11]),
@@ -142,22 +147,18 @@ def pool_main(folders: list[str]) -> dict:
         raise SystemExit("design_judges --pool: give two or more finished --out folders (with judges.json)"
                          + (f"; none in {', '.join(missing)}" if missing else ""))
 
-    def held(d):
-        return [json.loads((d / "judges.json").read_text())["judges"][j] for j in JUDGES]
-
-    first = held(dirs[0])
-    names = [m for m in first[0] if all(m in h for d in dirs for h in held(d))]
+    held = [json.loads((d / "judges.json").read_text())["judges"] for d in dirs]
+    names = [m for m in held[0][JUDGES[0]] if all(m in h[j] for h in held for j in JUDGES)]
     if "Imprint" not in names:
         raise SystemExit("design_judges --pool: the folders share no Imprint outcomes")
-    results = {}
+    parts = {}
     for j in JUDGES:
         for m in names:
-            parts = []
             for d in dirs:
-                with np.load(d / f"judge-{j}-{m.replace(' ', '_')}.npz") as z:
-                    parts.append(z["outcome"].astype(np.uint8))
-            results[(j, m)] = np.concatenate(parts)
-    sizes = [len(np.load(d / f"judge-{JUDGES[0]}-Imprint.npz")["outcome"]) for d in dirs]
+                with np.load(_judge_file(d, j, m)) as z:
+                    parts.setdefault((j, m), []).append(z["outcome"].astype(np.uint8))
+    results = {k: np.concatenate(v) for k, v in parts.items()}
+    sizes = [len(o) for o in parts[(JUDGES[0], "Imprint")]]
     print(f"pooled: {', '.join(f'{d} ({k} objects)' for d, k in zip(folders, sizes))}")
     nets = [m for m in names if m != "Imprint" and m not in MODES]
     return judge_tables(results, names, nets)
@@ -254,7 +255,7 @@ def main(argv=None) -> int:
     results = {}
     for j in JUDGES:
         for mode, d in designs.items():
-            r = _saved(out / f"judge-{j}-{mode.replace(' ', '_')}.npz", judge(j, d))
+            r = _saved(_judge_file(out, j, mode), judge(j, d))
             results[(j, mode)] = r["outcome"].astype(np.uint8)
             print(f"judged: {j} {mode} ({float(r['seconds']):.0f} s)", flush=True)
 
